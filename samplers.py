@@ -1,0 +1,192 @@
+"""Query selection, feedback schedules and candidate pairs of B-Pref (Lee et al., 2021),
+paper Section 4.2 and appendix "Sampling schemes". Arrays in, arrays out: no torch, no environment.
+
+    e0, s0, e1, s1 = random_pairs(episode_lengths, segment_len=50, n_pairs=1000, rng=rng)
+    chosen = select("disagreement", 100, probs=probs)  # probs (E, M): member i's P[sigma1 > sigma0]
+    sizes = schedule_sizes("decay", budget=1000, per_session=100)
+"""
+
+import numpy as np
+
+SAMPLERS = ("uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage")
+SCHEDULES = ("uniform", "decay", "increase")
+
+
+def disagreement_scores(probs: np.ndarray) -> np.ndarray:
+    """Ensemble disagreement: the standard deviation over members of P[sigma1 > sigma0], shape (M,)."""
+    return probs.std(axis=0)
+
+
+def entropy_scores(probs: np.ndarray) -> np.ndarray:
+    """The members' mean binary entropy of P[sigma1 > sigma0], shape (M,).
+
+    The paper ranks by "the entropy of a single preference predictor"; with an ensemble we average
+    each member's entropy (as the reference code does), not the entropy of the mean prediction, so
+    that entropy measures how undecided each predictor is and disagreement how much they differ."""
+    p = np.clip(probs, 1e-12, 1 - 1e-12)
+    return (-(p * np.log(p) + (1 - p) * np.log(1 - p))).mean(axis=0)
+
+
+def k_center_greedy(
+    features: np.ndarray, n_query: int, labeled_features: np.ndarray | None, rng: np.random.Generator
+) -> np.ndarray:
+    """Greedy k-center (Gonzalez): repeatedly pick the candidate farthest from its nearest center.
+
+    Queries labelled earlier are the initial centers; without them the first pick is random.
+    Distances to the centers are kept and updated with the newest center only: O(M * D) a pick."""
+    dtype = np.result_type(features, np.float32)  # float32 stays float32 (2x faster), else float64
+    features = np.asarray(features, dtype=dtype)
+    squared_norms = np.einsum("md,md->m", features, features)
+    nearest = np.full(len(features), np.inf, dtype=dtype)
+    if labeled_features is not None and len(labeled_features):
+        centers = np.asarray(labeled_features, dtype=dtype)
+        for start in range(0, len(centers), 1024):  # ||a - b||^2 = |a|^2 + |b|^2 - 2ab, in chunks
+            chunk = centers[start : start + 1024]
+            squared = squared_norms[:, None] + np.einsum("kd,kd->k", chunk, chunk)[None] - 2 * features @ chunk.T
+            nearest = np.minimum(nearest, squared.min(axis=1))
+    chosen = np.empty(n_query, dtype=np.int64)
+    for i in range(n_query):
+        pick = int(np.argmax(nearest)) if np.isfinite(nearest).any() else int(rng.integers(len(features)))
+        chosen[i] = pick
+        squared = squared_norms + squared_norms[pick] - 2 * features @ features[pick]
+        nearest = np.minimum(nearest, squared)
+        nearest[chosen[: i + 1]] = -np.inf  # never pick a center twice, even among duplicates
+    return chosen
+
+
+def _top(scores: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the n highest scores, highest first (ties: lower index first)."""
+    return np.argsort(-scores, kind="stable")[:n]
+
+
+def select(
+    method: str,
+    n_query: int,
+    *,
+    probs: np.ndarray | None = None,
+    features: np.ndarray | None = None,
+    labeled_features: np.ndarray | None = None,
+    n_inter: int | None = None,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Choose `n_query` distinct candidates among M by one of the paper's six SAMPLERS.
+
+    probs: (E, M), each ensemble member's P[sigma1 > sigma0] (uncertainty-based and hybrid methods).
+    features: (M, D), both segments' states concatenated (coverage and hybrids, appendix).
+    labeled_features: (K, D), queries labelled in earlier sessions: existing k-center centers.
+    n_inter: hybrids keep the n_inter most uncertain candidates, then pick centers among them
+    (default M // 2). rng: for uniform and the first coverage center (default: unseeded)."""
+    if method not in SAMPLERS:
+        raise ValueError(f"unknown sampler {method!r}: choose one of {', '.join(SAMPLERS)}")
+    rng = np.random.default_rng() if rng is None else rng
+    uncertainty = {"disagreement": disagreement_scores, "entropy": entropy_scores}.get(method.split("-")[0])
+    needs_coverage = method.endswith("coverage")
+    if uncertainty is not None and probs is None:
+        raise ValueError(f"sampler {method!r} needs probs, an (ensemble, candidates) array")
+    if needs_coverage and features is None:
+        raise ValueError(f"sampler {method!r} needs features, a (candidates, dim) array")
+    if probs is not None:
+        probs = np.asarray(probs)
+        if probs.ndim != 2:
+            raise ValueError(f"probs must be 2-D (ensemble, candidates), got shape {probs.shape}")
+    if features is not None:
+        features = np.asarray(features)
+        if features.ndim != 2:
+            raise ValueError(f"features must be 2-D (candidates, dim), got shape {features.shape}")
+    if probs is not None and features is not None and probs.shape[1] != len(features):
+        raise ValueError(f"probs has {probs.shape[1]} candidates but features has {len(features)}")
+    if labeled_features is not None:
+        labeled_features = np.asarray(labeled_features)
+        if features is None or labeled_features.ndim != 2 or labeled_features.shape[1] != features.shape[1]:
+            raise ValueError(
+                f"labeled_features must be 2-D with the feature dimension of features, got shape {labeled_features.shape}"
+            )
+    if probs is None and features is None:
+        raise ValueError("select needs probs or features to know the candidates")
+    n_candidates = probs.shape[1] if probs is not None else len(features)
+    if not (1 <= n_query <= n_candidates):
+        raise ValueError(f"n_query must be in [1, {n_candidates}] (the number of candidates), got {n_query}")
+
+    if method == "uniform":
+        return rng.choice(n_candidates, size=n_query, replace=False)
+    if method == "coverage":
+        return k_center_greedy(features, n_query, labeled_features, rng)
+    scores = uncertainty(probs)
+    if not needs_coverage:
+        return _top(scores, n_query)
+    n_inter = n_candidates // 2 if n_inter is None else n_inter
+    if not (n_query <= n_inter <= n_candidates):
+        raise ValueError(f"n_inter must be in [n_query, candidates] = [{n_query}, {n_candidates}], got {n_inter}")
+    most_uncertain = _top(scores, n_inter)
+    return most_uncertain[k_center_greedy(features[most_uncertain], n_query, labeled_features, rng)]
+
+
+def schedule_sizes(name: str, budget: int, per_session: int) -> np.ndarray:
+    """Number of queries of each feedback session (paper Section 4.2); together exactly `budget`.
+
+    With S = budget / per_session sessions in the uniform schedule, session i (from 0) asks
+      uniform:  per_session
+      decay:    2 * per_session * tau / (tau + i),   tau = S / 2.513   (the paper's T / (t + T))
+      increase: per_session / 2 * (tau + i) / tau,   tau = (S - 1) / 2 (the paper's (T + t) / T)
+    i.e. the paper's curves with time counted in sessions and its T a number of sessions. tau is
+    chosen so that each schedule spends the budget in about S sessions, like the uniform one
+    (decay: 2 tau ln(1 + S / tau) = S), and the first session is 2x (decay) or 0.5x (increase)
+    the uniform size. Sizes are rounded (at least 1); the last session takes what is left."""
+    if name not in SCHEDULES:
+        raise ValueError(f"unknown schedule {name!r}: choose one of {', '.join(SCHEDULES)}")
+    if budget < 1 or per_session < 1:
+        raise ValueError(f"budget and per_session must be >= 1, got budget={budget}, per_session={per_session}")
+    if per_session > budget:
+        raise ValueError(f"per_session ({per_session}) cannot exceed budget ({budget})")
+    n_uniform = budget / per_session
+    decay_tau = n_uniform / 2.513
+    increase_tau = max((n_uniform - 1) / 2, 0.5)
+
+    def curve(i: int) -> float:
+        if name == "decay":
+            return 2 * per_session * decay_tau / (decay_tau + i)
+        if name == "increase":
+            return 0.5 * per_session * (increase_tau + i) / increase_tau
+        return per_session
+
+    sizes, remaining = [], budget
+    while remaining > 0:
+        size = min(max(1, round(curve(len(sizes)))), remaining)
+        sizes.append(size)
+        remaining -= size
+    return np.array(sizes, dtype=np.int64)
+
+
+def random_pairs(
+    episode_lengths, segment_len: int, n_pairs: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Draw candidate pairs of segments uniformly over stored episodes of any lengths.
+
+    Every (episode, start) with 0 <= start <= length - segment_len is one position, the last one
+    included; the two sides of a pair are two different positions, uniform over such pairs
+    (the reference code missed the last start and could pair a segment with itself).
+    Returns (episode0, start0, episode1, start1), indices into `episode_lengths`."""
+    lengths = np.asarray(episode_lengths, dtype=np.int64)
+    if lengths.ndim != 1:
+        raise ValueError(f"episode_lengths must be 1-D, got shape {lengths.shape}")
+    if segment_len < 1:
+        raise ValueError(f"segment_len must be >= 1, got {segment_len}")
+    if n_pairs < 0:
+        raise ValueError(f"n_pairs must be >= 0, got {n_pairs}")
+    positions_per_episode = np.maximum(lengths - segment_len + 1, 0)
+    n_positions = int(positions_per_episode.sum())
+    if n_positions < 2:
+        raise ValueError(
+            f"need two distinct segments of length {segment_len}, but the stored episodes "
+            f"(longest {lengths.max(initial=0)} steps) hold {n_positions}"
+        )
+    first = rng.integers(n_positions, size=n_pairs)
+    second = rng.integers(n_positions - 1, size=n_pairs)
+    second += second >= first  # uniform over the positions other than `first`
+    ends = np.cumsum(positions_per_episode)
+
+    def to_episode_start(flat):
+        episode = np.searchsorted(ends, flat, side="right")
+        return episode, flat - (ends[episode] - positions_per_episode[episode])
+
+    return (*to_episode_start(first), *to_episode_start(second))
