@@ -35,11 +35,13 @@ def k_center_greedy(
     Queries labelled earlier are the initial centers; without them the first pick is random.
     Distances to the centers are kept and updated with the newest center only: O(M * D) a pick."""
     dtype = np.result_type(features, np.float32)  # float32 stays float32 (2x faster), else float64
-    features = np.asarray(features, dtype=dtype)
+    # Centering keeps |a|^2 + |b|^2 - 2ab accurate in float32 when all states share a large offset
+    offset = np.asarray(features, dtype=np.float64).mean(axis=0)
+    features = (features - offset).astype(dtype)
     squared_norms = np.einsum("md,md->m", features, features)
     nearest = np.full(len(features), np.inf, dtype=dtype)
     if labeled_features is not None and len(labeled_features):
-        centers = np.asarray(labeled_features, dtype=dtype)
+        centers = (labeled_features - offset).astype(dtype)
         for start in range(0, len(centers), 1024):  # ||a - b||^2 = |a|^2 + |b|^2 - 2ab, in chunks
             chunk = centers[start : start + 1024]
             squared = squared_norms[:, None] + np.einsum("kd,kd->k", chunk, chunk)[None] - 2 * features @ chunk.T
@@ -75,7 +77,7 @@ def select(
     features: (M, D), both segments' states concatenated (coverage and hybrids, appendix).
     labeled_features: (K, D), queries labelled in earlier sessions: existing k-center centers.
     n_inter: hybrids keep the n_inter most uncertain candidates, then pick centers among them
-    (default M // 2). rng: for uniform and the first coverage center (default: unseeded)."""
+    (default max(n_query, M // 2)). rng: for uniform and the first coverage center (default: unseeded)."""
     if method not in SAMPLERS:
         raise ValueError(f"unknown sampler {method!r}: choose one of {', '.join(SAMPLERS)}")
     rng = np.random.default_rng() if rng is None else rng
@@ -114,7 +116,7 @@ def select(
     scores = uncertainty(probs)
     if not needs_coverage:
         return _top(scores, n_query)
-    n_inter = n_candidates // 2 if n_inter is None else n_inter
+    n_inter = max(n_query, n_candidates // 2) if n_inter is None else n_inter
     if not (n_query <= n_inter <= n_candidates):
         raise ValueError(f"n_inter must be in [n_query, candidates] = [{n_query}, {n_candidates}], got {n_inter}")
     most_uncertain = _top(scores, n_inter)
