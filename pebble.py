@@ -1,5 +1,6 @@
 # PEBBLE (Lee, Smith, Abbeel 2021) as benchmarked by B-Pref (Lee et al. 2021); docs and choices: README.md
 import csv
+import importlib
 import json
 import math
 import os
@@ -169,11 +170,17 @@ def env_kind(env_id: str) -> str:
         return "dmc"
     if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
         return "metaworld"
-    if env_id in gym.registry:
+    module, _, gym_id = env_id.rpartition(":")  # "my_package:MyEnv-v0" registers MyEnv-v0 on import
+    if module:
+        try:
+            importlib.import_module(module)
+        except ImportError as error:
+            raise ValueError(f"--env-id {env_id!r}: cannot import {module!r} ({error})") from None
+    if gym_id in gym.registry:
         return "gym"
     raise ValueError(
         f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), "
-        "a Meta-World v3 task (e.g. button-press) or a registered Gymnasium id"
+        "a Meta-World v3 task (e.g. button-press) or a registered Gymnasium id (optionally module:id)"
     )
 
 
@@ -188,7 +195,7 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
         env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: fixed 500-step episodes
         episode_len = env.spec.max_episode_steps or 500
     else:
-        env = gym.make(env_id, render_mode=render_mode)
+        env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
         episode_len = env.spec.max_episode_steps
         if not isinstance(env.action_space, gym.spaces.Box) or not isinstance(env.observation_space, gym.spaces.Box):
             raise ValueError(f"--env-id {env_id!r} must have Box observation and action spaces")
@@ -196,6 +203,7 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
             raise ValueError(f"--env-id {env_id!r} has no time limit (max_episode_steps), needed for the thresholds")
     env = gym.wrappers.RescaleAction(env, -1.0, 1.0)
     env = gym.wrappers.TransformObservation(env, lambda o: np.asarray(o, dtype=np.float32), env.observation_space)
+    env.reset(seed=seed)  # seeds the env's generator once; later resets continue its sequence
     env.action_space.seed(seed)
     return env, episode_len
 
@@ -299,7 +307,7 @@ class RunningMeanStd:
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 8192) -> torch.Tensor:
     """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state
-    itself (its zero distance): the (k+1)-th smallest distance. Eq. (6) without the log (README)."""
+    itself (its zero distance): the (k+1)-th smallest distance. Eq. (8) without the log (README)."""
     dists = torch.cat([torch.cdist(states, reference[i : i + chunk]) for i in range(0, len(reference), chunk)], dim=1)
     return dists.topk(k + 1, dim=1, largest=False).values[:, -1:]
 
@@ -314,7 +322,7 @@ def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 163
 
 
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
-    """Eq. (4): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (3)) against soft targets
+    """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against soft targets
     (1 - y, y); equal labels (y = 0.5) are the uniform target. segment_returns: (batch, 2)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
     log_probs = F.log_softmax(segment_returns, dim=-1)
@@ -330,8 +338,8 @@ def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple
 
 
 def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs) -> tuple[float, float]:
-    """Reward learning (Algorithm 3, lines 8-10): up to max_epochs passes over the preference dataset,
-    each member with its own shuffle; stop once the mean training accuracy passes 97%."""
+    """Reward learning (Algorithm 3, the gradient steps on L^Reward): up to max_epochs passes over the
+    preference dataset, each member with its own shuffle; stop once the training accuracy passes 97%."""
     n, accuracy, loss_value = len(y), float("nan"), float("nan")
     for _ in range(max_epochs):
         orders = [torch.randperm(n, device=y.device) for _ in reward_model.members]
@@ -518,13 +526,16 @@ if __name__ == "__main__":
     feedback_used = sessions_done = 0
 
     def sac_update(reward_source: str) -> dict:
-        """One SAC step (appendix Eqs. (9)-(11)) on a batch whose reward is the learned r_hat, the
+        """One SAC step (appendix Eqs. (6)-(7), learned temperature) on a batch whose reward is the learned r_hat, the
         true reward (--ground-truth-reward) or the kNN state entropy (pre-training, Algorithm 2)."""
         obs, actions, rewards, next_obs, terminated = buffer.sample(args.batch_size)
         if reward_source == "intrinsic":
+            global pebble_seconds
+            knn_start = time.perf_counter()
             rewards = knn_distance(next_obs, buffer.obs[: buffer.size], args.knn_k)
             intrinsic_stats.update(rewards)
             rewards = rewards / max(intrinsic_stats.std, 1e-8)
+            pebble_seconds += time.perf_counter() - knn_start
         alpha = log_alpha.exp().detach()
         with torch.no_grad():
             next_actions, next_log_probs = actor.sample(next_obs)
@@ -566,7 +577,7 @@ if __name__ == "__main__":
         return (torch.as_tensor(episode_starts + starts, device=device)[:, None] + offsets) % buffer.capacity
 
     def feedback_session(size: int, first: bool) -> int:
-        """Algorithm 3, lines 5-10: sample queries, ask the teacher, save the labels, learn the reward."""
+        """Algorithm 3, reward learning: SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat."""
         global feedback_used, sessions_done
         usable = usable_episodes()
         episode_starts = np.array([s for s, _ in usable], dtype=np.int64)
@@ -617,12 +628,15 @@ if __name__ == "__main__":
                                       torch.cat(preference_inputs1), torch.cat(preference_y), args, args.reward_epochs)
         writer.add_scalar("reward/loss", loss, global_step)
         writer.add_scalar("reward/accuracy", accuracy, global_step)
+        print(f"step {global_step}: feedback session {sessions_done}: {size} queries ({int((~keep).sum())} skipped, "
+              f"{int((y[keep] == 0.5).sum())} equal), reward model trained on {n_labels} labels, accuracy {accuracy:.3f}")
         return n_labels
 
     def reset_critic():
         """PEBBLE, after the first reward update: fresh critics (not actor or temperature), then
         critic_reset_updates SAC steps on the relabelled buffer (reference code)."""
         global critic, critic_optimizer
+        counts["critic_resets"] += 1
         critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
         critic_target.load_state_dict(critic.state_dict())
         critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate)
@@ -633,15 +647,18 @@ if __name__ == "__main__":
 
     # Main loop: Algorithm 3 (PEBBLE) with Algorithm 2 (pre-training) for the first steps
     eval_path = os.path.join(output_dir, "eval.csv")
-    eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation", "wall_time"]
+    eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
+                   "wall_time", "pebble_seconds"]
     with open(eval_path, "w", newline="") as f:
         csv.DictWriter(f, eval_fields).writeheader()
     pretrain_end = args.seed_steps + args.unsup_steps
     next_feedback_step = pretrain_end + 1
     completed_episodes, recent_returns = [], []  # (first transition number, length) of finished episodes; true returns
-    obs, _ = env.reset(seed=args.seed)
+    obs, _ = env.reset()
     episode_start, episode_steps, episode_return = 0, 0, 0.0
     reward_ready, last_eval, sac_steps = False, float("nan"), 0  # reward_ready: SAC uses buffer.rewards
+    counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, relabels=0, critic_resets=0)
+    pebble_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling
     start_time = last_print = time.time()
     for global_step in range(1, args.total_timesteps + 1):
         if args.ground_truth_reward and global_step == pretrain_end + 1:
@@ -650,14 +667,16 @@ if __name__ == "__main__":
         # Feedback sessions: the first at the end of pre-training, then every feedback_every steps
         if (not args.ground_truth_reward and global_step >= next_feedback_step
                 and sessions_done < len(session_sizes) and usable_episodes()):
-            session_start = time.time()
+            session_start = time.perf_counter()
             if feedback_session(int(session_sizes[sessions_done]), first=not reward_ready):
                 relabel(buffer, reward_model)
+                counts["relabels"] += 1
                 if not reward_ready:
                     reset_critic()
                 reward_ready = True
             next_feedback_step = global_step + args.feedback_every
-            writer.add_scalar("time/feedback_session_seconds", time.time() - session_start, global_step)
+            pebble_seconds += time.perf_counter() - session_start
+            writer.add_scalar("time/feedback_session_seconds", time.perf_counter() - session_start, global_step)
 
         if global_step <= args.seed_steps:
             action = env.action_space.sample()
@@ -667,8 +686,10 @@ if __name__ == "__main__":
         next_obs, true_reward, terminated, truncated, info = env.step(action)
         learned_reward = 0.0
         if reward_ready and not args.ground_truth_reward:  # Algorithm 3: store r_hat(s_t, a_t) with the transition
+            inference_start = time.perf_counter()
             with torch.no_grad():
                 learned_reward = reward_model(torch.as_tensor(np.concatenate([obs, action]), device=device)).mean().item()
+            pebble_seconds += time.perf_counter() - inference_start
         buffer.add(obs, action, true_reward if args.ground_truth_reward else learned_reward, true_reward, next_obs, terminated)
         obs, episode_steps, episode_return = next_obs, episode_steps + 1, episode_return + true_reward
         if terminated or truncated:
@@ -683,6 +704,7 @@ if __name__ == "__main__":
         if global_step > args.seed_steps:
             losses = sac_update("learned" if reward_ready else "intrinsic")
             sac_steps += 1
+            counts["updates_on_" + ("learned_reward" if reward_ready else "knn_reward")] += 1
             if sac_steps % args.target_update_every == 0:
                 update_target()
             if global_step % 1000 == 0:
@@ -693,7 +715,8 @@ if __name__ == "__main__":
         if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
             result = evaluate(actor, reward_model if reward_ready and not args.ground_truth_reward else None, eval_env, args.eval_episodes, device, video_env)
             last_eval = result["episode_return"]
-            row = {"step": global_step, **result, "feedback": feedback_used, "wall_time": round(time.time() - start_time, 1)}
+            row = {"step": global_step, **result, "feedback": feedback_used, "wall_time": round(time.time() - start_time, 1),
+                   "pebble_seconds": round(pebble_seconds, 1)}
             with open(eval_path, "a", newline="") as f:
                 csv.DictWriter(f, eval_fields).writerow(row)
             for name in ("episode_return", "success_rate", "reward_correlation"):
@@ -704,6 +727,8 @@ if __name__ == "__main__":
             print(f"step {global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA {(args.total_timesteps - global_step) / sps / 60:.1f} min"
                   f" | last eval return {last_eval:.1f} | labels {feedback_used}/{args.max_feedback}", flush=True)
 
+    print(f"done: {counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
+          f"{sessions_done} feedback sessions, {feedback_used} queries; outputs in {output_dir}")
     torch.save({"actor": actor.state_dict(), "critic": critic.state_dict(), "reward_model": reward_model.state_dict()},
                os.path.join(output_dir, "final_model.pt"))
     env.close()

@@ -31,7 +31,7 @@ class SimTeacher:
     eps_skip: float = 0.0
     """epsilon_adapt of the skip threshold: delta_skip = eps_skip * H / T * R_avg (appendix)"""
     eps_equal: float = 0.0
-    """epsilon_adapt of the equal threshold: delta_equal = eps_equal * H / T * R_avg (appendix)"""
+    """epsilon_adapt of the equal threshold: delta_equal = eps_equal * H / T * |R_avg| (appendix)"""
     seed: int | None = None
     """seed of the teacher's own random generator (stochastic choices and mistakes)"""
     delta_skip: float = field(default=0.0, init=False)
@@ -60,7 +60,9 @@ class SimTeacher:
             raise ValueError(f"mean_return must be finite, got {mean_return}")
         scaled_return = segment_len / episode_len * mean_return
         self.delta_skip = self.eps_skip * scaled_return
-        self.delta_equal = self.eps_equal * scaled_return
+        # A difference threshold must be >= 0: on tasks with negative returns (not in the paper, whose
+        # rewards are >= 0) the equal threshold uses |R_avg|, so the Equal teacher still says "equal".
+        self.delta_equal = self.eps_equal * abs(scaled_return)
 
     def label(self, rewards0: np.ndarray, rewards1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Algorithm 1 on N queries at once: true rewards (N, H) of both segments -> (y, keep)."""

@@ -548,3 +548,12 @@ def test_label_of_zero_pairs_returns_empty_arrays():
         y, keep = t.label(np.zeros((0, 5)), np.zeros((0, 5)))
         assert y.shape == (0,) and keep.shape == (0,)
         assert keep.dtype == bool
+
+
+def test_equal_threshold_uses_absolute_return_on_negative_return_tasks():
+    # R_avg = -400, H/T = 0.05: delta_equal = 0.1 * 0.05 * 400 = 2.0 (a negative threshold would never fire)
+    teacher = make_teacher("equal", seed=0)
+    teacher.set_thresholds(mean_return=-400.0, segment_len=50, episode_len=1000)
+    assert teacher.delta_equal == pytest.approx(2.0)
+    y, keep = teacher.label(np.array([[-10.0], [-10.0]]), np.array([[-11.5], [-12.5]]))
+    assert y.tolist() == [0.5, 0.0] and keep.all()

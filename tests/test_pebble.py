@@ -1,0 +1,282 @@
+"""pebble.py: unit tests of the parts that can be wrong quietly, smoke runs that reach every phase
+(pre-training updates, feedback sessions, reward learning, relabelling, critic reset, evaluation),
+and bad input that must end with one line and a non-zero exit before any training."""
+
+import ast
+import csv
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import pebble
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
+        "--reward-batch-size", "32", "--eval-episodes", "1"]
+ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
+
+
+def run_pebble(out: Path, *flags: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "pebble.py"), "--output-dir", str(out), *flags]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
+
+
+def finished_counts(stdout: str) -> dict:
+    """The counters of the final 'done: {...}' line."""
+    match = re.search(r"^done: (\{.*?\})", stdout, re.M)
+    assert match, stdout[-2000:]
+    return ast.literal_eval(match.group(1))
+
+
+def eval_rows(out: Path) -> list[dict]:
+    with open(out / "eval.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def saved_labels(out: Path) -> list[dict]:
+    return [dict(np.load(path)) for path in sorted((out / "labels").glob("session_*.npz"))]
+
+
+# ---------------------------------------------------------------- unit tests of the quiet parts
+
+
+def test_knn_distance_is_kth_neighbour_not_counting_the_state_itself():
+    points = torch.tensor([[0.0], [1.0], [3.0], [6.0], [10.0]])
+    # from 0: others at 1, 3, 6, 10 -> 2nd neighbour at 3; from 6: others at 4, 3, 5, 6 -> 2nd is 4
+    distances = pebble.knn_distance(points, points, k=2, chunk=2)  # chunk=2: the chunked path too
+    assert distances[:, 0].tolist() == [3.0, 2.0, 3.0, 4.0, 7.0]
+
+
+def test_running_mean_std_matches_numpy_over_all_batches():
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(3.0, 2.0, size=n) for n in (5, 100, 1, 37)]
+    stats = pebble.RunningMeanStd()
+    for batch in batches:
+        stats.update(torch.tensor(batch))
+    everything = np.concatenate(batches)
+    assert stats.mean == pytest.approx(everything.mean(), rel=1e-9)
+    assert stats.var == pytest.approx(everything.var(), rel=1e-9)
+    assert stats.count == len(everything)
+
+
+def test_relabel_covers_the_whole_wrapped_buffer():
+    torch.manual_seed(0)
+    buffer = pebble.ReplayBuffer(capacity=10, obs_dim=3, action_dim=2, device="cpu")
+    for i in range(25):  # wraps twice; the write position ends at 5
+        buffer.add(np.full(3, i, np.float32), np.full(2, -i, np.float32), 123.0, 0.0, np.zeros(3, np.float32), False)
+    model = pebble.RewardEnsemble(3, 2, size=3)
+    pebble.relabel(buffer, model, chunk=4)
+    expected = model(torch.cat([buffer.obs, buffer.actions], dim=-1)).mean(0)
+    assert buffer.pos == 5 and buffer.size == 10
+    torch.testing.assert_close(buffer.rewards, expected)  # slots 5..9 too, not only the prefix before pos
+    assert not (buffer.rewards == 123.0).any()
+
+
+def test_preference_loss_is_cross_entropy_of_eq3():
+    returns = torch.tensor([[0.0, 10.0], [2.0, 2.0]])
+    # y = 1 (second preferred): -log sigmoid(10); y = 0 on equal returns: -log 0.5
+    loss = pebble.preference_loss(returns, torch.tensor([1.0, 0.0]))
+    assert loss.item() == pytest.approx((math.log1p(math.exp(-10)) + math.log(2)) / 2, rel=1e-6)
+
+
+def test_equal_label_is_the_uniform_target_and_is_minimised_by_equal_returns():
+    returns = torch.tensor([[1.0, 3.0]], requires_grad=True)
+    loss = pebble.preference_loss(returns, torch.tensor([0.5]))
+    p_second = 1 / (1 + math.exp(-2.0))
+    assert loss.item() == pytest.approx(-0.5 * (math.log(1 - p_second) + math.log(p_second)), rel=1e-6)
+    loss.backward()
+    assert returns.grad[0, 1] > 0 > returns.grad[0, 0]  # pushes the two returns together
+    balanced = torch.tensor([[2.0, 2.0]], requires_grad=True)
+    pebble.preference_loss(balanced, torch.tensor([0.5])).backward()
+    assert balanced.grad.abs().max() < 1e-7
+
+
+def test_label_smoothing_softens_the_target_as_in_the_appendix():
+    returns = torch.tensor([[0.0, math.log(19.0)]])  # P[second] = 0.95
+    smoothed = pebble.preference_loss(returns, torch.tensor([1.0]), label_smoothing=0.1)
+    entropy_095 = -(0.95 * math.log(0.95) + 0.05 * math.log(0.05))
+    assert smoothed.item() == pytest.approx(entropy_095, rel=1e-6)  # target 0.95 matches P exactly
+
+
+def test_accuracy_does_not_count_equal_labels():
+    returns = torch.tensor([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])  # always predicts "first"
+    correct, counted = pebble.preference_accuracy(returns, torch.tensor([0.5, 0.5, 0.0, 1.0]))
+    assert (correct, counted) == (1, 2)  # the old code would say 3 of 4
+
+
+def test_train_reward_learns_a_separable_preference():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    inputs0, inputs1 = (torch.tensor(rng.normal(size=(256, 5, 4)), dtype=torch.float32) for _ in range(2))
+    y = (inputs1[..., 0].sum(1) > inputs0[..., 0].sum(1)).float()  # true reward: the first feature
+    model = pebble.RewardEnsemble(obs_dim=2, action_dim=2, size=3)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-4)
+    args = pebble.Args(reward_batch_size=64)
+    _, accuracy = pebble.train_reward(model, optimizer, inputs0, inputs1, y, args, max_epochs=60)
+    assert accuracy > 0.9
+    with torch.no_grad():
+        held_out = torch.tensor(rng.normal(size=(200, 1, 4)), dtype=torch.float32)
+        learned = model(held_out).mean(0)[:, 0, 0]
+    assert np.corrcoef(learned.numpy(), held_out[:, 0, 0].numpy())[0, 1] > 0.8
+
+
+# ---------------------------------------------------------------- smoke runs that reach every phase
+
+
+def check_complete_run(out: Path, result: subprocess.CompletedProcess, n_sessions: int, obs_dim: int, segment_len: int):
+    assert result.returncode == 0, result.stderr[-3000:]
+    counts = finished_counts(result.stdout)
+    assert counts["updates_on_knn_reward"] > 0  # gradient steps during unsupervised pre-training
+    assert counts["updates_on_learned_reward"] > 0
+    assert counts["critic_resets"] == 1 and counts["relabels"] == n_sessions
+    assert len(re.findall(r"feedback session \d+:", result.stdout)) == n_sessions
+    rows = eval_rows(out)
+    assert {"step", "episode_return", "success_rate", "feedback", "reward_correlation"} <= set(rows[0])
+    assert [int(r["feedback"]) for r in rows] == sorted(int(r["feedback"]) for r in rows)
+    assert math.isfinite(float(rows[-1]["reward_correlation"]))
+    labels = saved_labels(out)
+    assert len(labels) == n_sessions
+    for session in labels:
+        n = len(session["y"])
+        assert session["obs0"].shape == session["obs1"].shape == (n, segment_len, obs_dim)
+        assert session["rewards0"].shape == (n, segment_len) and session["keep"].dtype == bool
+    config = json.loads((out / "config.json").read_text())
+    assert config["segment_len"] == segment_len
+    assert list(out.glob("events.out.tfevents.*"))
+    return rows, labels
+
+
+def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
+    out = tmp_path / "walker"
+    result = run_pebble(out, "--env-id", "walker-walk", "--total-timesteps", "2300", "--seed-steps", "500",
+                        "--unsup-steps", "600", "--feedback-every", "500", "--max-feedback", "30",
+                        "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1150", *TINY)
+    rows, labels = check_complete_run(out, result, n_sessions=3, obs_dim=24, segment_len=10)
+    assert [int(r["step"]) for r in rows] == [1150, 2300]
+    assert [int(r["feedback"]) for r in rows] == [10, 30]
+    for session in labels:  # the oracle's labels agree with the saved true rewards of the saved segments
+        np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
+    config = json.loads((out / "config.json").read_text())
+    assert config["learning_rate"] == 5e-4  # walker-walk preset fills what was not given
+
+
+def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
+    out = tmp_path / "button"
+    result = run_pebble(out, "--env-id", "button-press", "--total-timesteps", "1600", "--seed-steps", "300",
+                        "--unsup-steps", "300", "--feedback-every", "400", "--max-feedback", "30",
+                        "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "800", *TINY)
+    rows, _ = check_complete_run(out, result, n_sessions=3, obs_dim=39, segment_len=10)
+    assert all(0.0 <= float(r["success_rate"]) <= 1.0 for r in rows)
+    assert json.loads((out / "config.json").read_text())["reward_epochs"] == 3
+
+
+PENDULUM = ["--env-id", "Pendulum-v1", "--total-timesteps", "1100", "--seed-steps", "200", "--unsup-steps", "200",
+            "--feedback-every", "300", "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
+            "--eval-every", "1100", *TINY]
+
+
+@pytest.mark.parametrize(
+    "teacher, sampler",
+    [("oracle", "uniform"), ("stoc", "disagreement"), ("mistake", "entropy"), ("skip", "coverage"),
+     ("equal", "disagreement-coverage"), ("myopic", "entropy-coverage")],
+)
+def test_every_teacher_and_sampler_runs_a_full_schedule(tmp_path, teacher, sampler):
+    out = tmp_path / f"{teacher}_{sampler}"
+    result = run_pebble(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert finished_counts(result.stdout)["relabels"] == 3
+    labels = saved_labels(out)
+    assert sum(len(s["y"]) for s in labels) == 30
+    y = np.concatenate([s["y"] for s in labels])
+    keep = np.concatenate([s["keep"] for s in labels])
+    if teacher == "skip":  # Pendulum's returns are negative: many segments fall under delta_skip
+        assert (~keep).any() and np.isnan(y[~keep]).all()
+    else:
+        assert keep.all()
+    if teacher == "equal":
+        assert (y == 0.5).any()
+
+
+def test_all_queries_skipped_keeps_exploring_without_training_on_nothing(tmp_path):
+    out = tmp_path / "skipped"
+    result = run_pebble(out, "--env-id", "tests.toy_envs:ConstantPenalty-v0", "--total-timesteps", "600",
+                        "--seed-steps", "100", "--unsup-steps", "100", "--feedback-every", "150",
+                        "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
+                        "--eval-every", "600", "--teacher", "skip", "--teacher-eps-skip", "0.5", *TINY)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.count("queries skipped, the reward model stays as it is") == 2
+    counts = finished_counts(result.stdout)
+    assert counts["relabels"] == 0 and counts["updates_on_learned_reward"] == 0
+    assert counts["updates_on_knn_reward"] == 500  # pre-training goes on while nothing is learned
+    assert not np.concatenate([s["keep"] for s in saved_labels(out)]).any()
+    assert eval_rows(out)[-1]["reward_correlation"] in ("", "nan")
+
+
+def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
+    out = tmp_path / "truth"
+    result = run_pebble(out, *PENDULUM, "--ground-truth-reward")
+    assert result.returncode == 0, result.stderr[-3000:]
+    counts = finished_counts(result.stdout)
+    assert counts["updates_on_knn_reward"] == 200 and counts["updates_on_learned_reward"] == 700
+    assert counts["critic_resets"] == 1 and counts["relabels"] == 0
+    assert not re.search(r"feedback session \d+:", result.stdout) and not saved_labels(out)
+    assert int(eval_rows(out)[-1]["feedback"]) == 0
+
+
+def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
+    flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy"]
+    first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
+    assert first.returncode == second.returncode == 0
+    columns = ("step", "episode_return", "feedback", "reward_correlation")
+    assert [[r[c] for c in columns] for r in eval_rows(tmp_path / "a")] == [[r[c] for c in columns] for r in eval_rows(tmp_path / "b")]
+
+
+# ---------------------------------------------------------------- bad input: one line, non-zero exit, nothing run
+
+BAD_INPUTS = [
+    (["--env-id", "nowhere-walk"], "--env-id"),
+    (["--env-id", "nomodule_xyz:Thing-v0"], "--env-id"),
+    (["--teacher", "sleepy"], "--teacher 'sleepy' is not one of oracle, stoc, mistake, skip, equal, myopic"),
+    (["--sampler", "best"], "--sampler 'best' is not one of uniform"),
+    (["--schedule", "random"], "--schedule 'random' is not one of uniform, decay, increase"),
+    (["--max-feedback", "-5"], "--max-feedback must be >= 1"),
+    (["--max-feedback", "100", "--feedback-per-session", "200"], "--feedback-per-session must be in [1, --max-feedback=100]"),
+    (["--segment-len", "5000"], "--segment-len must be in [1, 1000]"),
+    (["--teacher-gamma", "1.5"], "--teacher-gamma must be in (0, 1]"),
+    (["--teacher-gamma", "0"], "--teacher-gamma must be in (0, 1]"),
+    (["--teacher-beta", "-1"], "--teacher-beta must be >= 0"),
+    (["--teacher-eps-mistake", "1.5"], "--teacher-eps-mistake must be in [0, 1]"),
+    (["--teacher-eps-skip", "-0.1"], "--teacher-eps-skip must be in [0, 1]"),
+    (["--total-timesteps", "500"], "--total-timesteps (500) must exceed"),
+    (["--feedback-every", "0"], "--feedback-every must be >= 1"),
+    (["--label-smoothing", "1"], "--label-smoothing must be in [0, 1)"),
+    (["--learning-rate", "0"], "--learning-rate and --reward-lr must be > 0"),
+]
+
+
+@pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])
+def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(tmp_path, flags, message):
+    out = tmp_path / "run"
+    result = run_pebble(out, *flags, timeout=120)
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], result.stderr
+    assert not out.exists()  # nothing was started
+
+
+def test_existing_run_directory_is_not_overwritten(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "eval.csv").write_text("precious\n")
+    result = run_pebble(out, *PENDULUM, timeout=120)
+    assert result.returncode != 0 and "already holds a run" in result.stderr and "Traceback" not in result.stderr
+    assert (out / "eval.csv").read_text() == "precious\n"

@@ -1,0 +1,26 @@
+"""Tiny Gymnasium tasks for tests, made by `pebble.py --env-id tests.toy_envs:<id>`."""
+
+import gymnasium as gym
+import numpy as np
+
+
+class ConstantPenaltyEnv(gym.Env):
+    """Reward -1 at every step of 40-step episodes: every segment of H steps returns exactly -H, so a
+    Skip teacher with eps_skip = 0.5 (delta_skip = -H / 2) skips every query."""
+
+    def __init__(self):
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.state = np.zeros(3, dtype=np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.state = self.np_random.normal(size=3).astype(np.float32)
+        return self.state, {}
+
+    def step(self, action):
+        self.state = (self.state + 0.1 * np.append(action, 0.0)).astype(np.float32)
+        return self.state, -1.0, False, False, {}
+
+
+gym.register("ConstantPenalty-v0", entry_point=ConstantPenaltyEnv, max_episode_steps=40)
