@@ -530,12 +530,12 @@ if __name__ == "__main__":
         true reward (--ground-truth-reward) or the kNN state entropy (pre-training, Algorithm 2)."""
         obs, actions, rewards, next_obs, terminated = buffer.sample(args.batch_size)
         if reward_source == "intrinsic":
-            global pebble_seconds
+            global overhead_seconds
             knn_start = time.perf_counter()
             rewards = knn_distance(next_obs, buffer.obs[: buffer.size], args.knn_k)
             intrinsic_stats.update(rewards)
             rewards = rewards / max(intrinsic_stats.std, 1e-8)
-            pebble_seconds += time.perf_counter() - knn_start
+            overhead_seconds += time.perf_counter() - knn_start
         alpha = log_alpha.exp().detach()
         with torch.no_grad():
             next_actions, next_log_probs = actor.sample(next_obs)
@@ -648,7 +648,7 @@ if __name__ == "__main__":
     # Main loop: Algorithm 3 (PEBBLE) with Algorithm 2 (pre-training) for the first steps
     eval_path = os.path.join(output_dir, "eval.csv")
     eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
-                   "wall_time", "pebble_seconds"]
+                   "wall_time", "overhead_seconds"]
     with open(eval_path, "w", newline="") as f:
         csv.DictWriter(f, eval_fields).writeheader()
     pretrain_end = args.seed_steps + args.unsup_steps
@@ -658,7 +658,7 @@ if __name__ == "__main__":
     episode_start, episode_steps, episode_return = 0, 0, 0.0
     reward_ready, last_eval, sac_steps = False, float("nan"), 0  # reward_ready: SAC uses buffer.rewards
     counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, relabels=0, critic_resets=0)
-    pebble_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling
+    overhead_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling
     start_time = last_print = time.time()
     for global_step in range(1, args.total_timesteps + 1):
         if args.ground_truth_reward and global_step == pretrain_end + 1:
@@ -675,7 +675,7 @@ if __name__ == "__main__":
                     reset_critic()
                 reward_ready = True
             next_feedback_step = global_step + args.feedback_every
-            pebble_seconds += time.perf_counter() - session_start
+            overhead_seconds += time.perf_counter() - session_start
             writer.add_scalar("time/feedback_session_seconds", time.perf_counter() - session_start, global_step)
 
         if global_step <= args.seed_steps:
@@ -689,7 +689,7 @@ if __name__ == "__main__":
             inference_start = time.perf_counter()
             with torch.no_grad():
                 learned_reward = reward_model(torch.as_tensor(np.concatenate([obs, action]), device=device)).mean().item()
-            pebble_seconds += time.perf_counter() - inference_start
+            overhead_seconds += time.perf_counter() - inference_start
         buffer.add(obs, action, true_reward if args.ground_truth_reward else learned_reward, true_reward, next_obs, terminated)
         obs, episode_steps, episode_return = next_obs, episode_steps + 1, episode_return + true_reward
         if terminated or truncated:
@@ -716,7 +716,7 @@ if __name__ == "__main__":
             result = evaluate(actor, reward_model if reward_ready and not args.ground_truth_reward else None, eval_env, args.eval_episodes, device, video_env)
             last_eval = result["episode_return"]
             row = {"step": global_step, **result, "feedback": feedback_used, "wall_time": round(time.time() - start_time, 1),
-                   "pebble_seconds": round(pebble_seconds, 1)}
+                   "overhead_seconds": round(overhead_seconds, 1)}
             with open(eval_path, "a", newline="") as f:
                 csv.DictWriter(f, eval_fields).writerow(row)
             for name in ("episode_return", "success_rate", "reward_correlation"):

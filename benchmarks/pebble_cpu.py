@@ -5,7 +5,7 @@
     python benchmarks/pebble_cpu.py --summarize-only   # just the table from finished runs
 
 Wall times of runs that share the machine are noisy; PEBBLE's own cost is therefore also measured
-inside each run (eval.csv column pebble_seconds: kNN reward, queries, reward learning, relabelling).
+inside each run (eval.csv column overhead_seconds: kNN reward, queries, reward learning, relabelling).
 """
 
 import argparse
@@ -30,7 +30,10 @@ METHODS = {
 
 def read_rows(path: Path) -> list[dict]:
     with open(path) as f:
-        return [{k: float(v) if v not in ("", "nan") else float("nan") for k, v in row.items()} for row in csv.DictReader(f)]
+        rows = [{k: float(v) if v not in ("", "nan") else float("nan") for k, v in row.items()} for row in csv.DictReader(f)]
+    for row in rows:  # runs made before the column was renamed
+        row.setdefault("overhead_seconds", row.get("pebble_seconds", float("nan")))
+    return rows
 
 
 def summarize(out: Path, seeds: list[int]):
@@ -40,7 +43,7 @@ def summarize(out: Path, seeds: list[int]):
         runs = [r for r in runs if r and r[-1]["step"] >= 100000]
         results[method] = runs
     print(f"\nwalker-walk, 100K steps, 256 x 2, batch 256, CPU; seeds {seeds}\n")
-    print("| method | seeds done | final return (mean ± std) | mean return over evals | final reward_correlation | wall time (min) | pebble_seconds / wall |")
+    print("| method | seeds done | final return (mean ± std) | mean return over evals | final reward_correlation | wall time (min) | overhead_seconds / wall |")
     print("|---|---|---|---|---|---|---|")
     for method, runs in results.items():
         if not runs:
@@ -50,7 +53,7 @@ def summarize(out: Path, seeds: list[int]):
         curves = np.array([np.mean([row["episode_return"] for row in r]) for r in runs])
         corr = np.array([r[-1]["reward_correlation"] for r in runs])
         wall = np.array([r[-1]["wall_time"] for r in runs])
-        overhead = np.array([r[-1]["pebble_seconds"] / r[-1]["wall_time"] for r in runs])
+        overhead = np.array([r[-1]["overhead_seconds"] / r[-1]["wall_time"] for r in runs])
         corr_text = "-" if np.isnan(corr).all() else f"{np.nanmean(corr):.3f} ± {np.nanstd(corr):.3f}"
         print(f"| {method} | {len(runs)} | {finals.mean():.1f} ± {finals.std():.1f} | {curves.mean():.1f} | {corr_text} "
               f"| {wall.mean() / 60:.1f} | {overhead.mean():.3f} |")
@@ -59,8 +62,8 @@ def summarize(out: Path, seeds: list[int]):
         true_final = np.mean([r[-1]["episode_return"] for r in results["sac_true_reward"]])
         pebble_curve = np.mean([np.mean([row["episode_return"] for row in r]) for r in results["pebble"]])
         true_curve = np.mean([np.mean([row["episode_return"] for row in r]) for r in results["sac_true_reward"]])
-        pebble_own = np.mean([r[-1]["pebble_seconds"] for r in results["pebble"]])
-        true_knn = np.mean([r[-1]["pebble_seconds"] for r in results["sac_true_reward"]])
+        pebble_own = np.mean([r[-1]["overhead_seconds"] for r in results["pebble"]])
+        true_knn = np.mean([r[-1]["overhead_seconds"] for r in results["sac_true_reward"]])
         true_wall = np.mean([r[-1]["wall_time"] for r in results["sac_true_reward"]])
         print(f"\nnormalized return (PEBBLE / SAC with true reward): final {pebble_final / true_final:.3f}, "
               f"averaged over evaluations {pebble_curve / true_curve:.3f}")

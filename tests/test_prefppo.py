@@ -1,0 +1,235 @@
+"""prefppo.py: unit tests of GAE, the autoreset handling and the reward replacement; smoke runs that
+reach every phase (pre-training updates, value reset, feedback sessions, PPO on r_hat, evaluation);
+bad input that must end with one line and a non-zero exit before any training."""
+
+import ast
+import csv
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import prefppo
+import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
+        "--eval-episodes", "1", "--update-epochs", "2"]
+ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
+
+
+def run_prefppo(out: Path, *flags: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "prefppo.py"), "--output-dir", str(out), *flags]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
+
+
+def finished_counts(stdout: str) -> dict:
+    match = re.search(r"^done: (\{.*?\})", stdout, re.M)
+    assert match, stdout[-2000:]
+    return ast.literal_eval(match.group(1))
+
+
+def eval_rows(out: Path) -> list[dict]:
+    with open(out / "eval.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def saved_labels(out: Path) -> list[dict]:
+    return [dict(np.load(path)) for path in sorted((out / "labels").glob("session_*.npz"))]
+
+
+# ---------------------------------------------------------------- unit tests
+
+
+def test_gae_matches_a_hand_computed_rollout():
+    gamma, lam = 0.9, 0.8
+    rewards = torch.tensor([[1.0], [2.0], [3.0]])
+    values = torch.tensor([[0.5], [1.0], [1.5]])
+    next_values = torch.tensor([[1.0], [1.5], [2.0]])
+    dones = torch.zeros(3, 1)
+    d2 = 3 + 0.9 * 2.0 - 1.5  # 3.3
+    d1 = 2 + 0.9 * 1.5 - 1.0  # 2.35
+    d0 = 1 + 0.9 * 1.0 - 0.5  # 1.4
+    a2 = d2
+    a1 = d1 + gamma * lam * a2
+    a0 = d0 + gamma * lam * a1
+    advantages, returns = prefppo.compute_gae(rewards, values, next_values, dones, gamma, lam)
+    torch.testing.assert_close(advantages[:, 0], torch.tensor([a0, a1, a2]))
+    torch.testing.assert_close(returns, advantages + values)
+
+
+def test_gae_stops_at_a_done_step_and_uses_the_truncation_bootstrap_in_the_reward():
+    gamma, lam = 0.9, 0.8
+    # step 1 ends an episode: its delta has no next value, and step 0 does not see step 2
+    rewards = torch.tensor([[1.0], [2.0 + 0.9 * 7.0], [3.0]])  # step 1 truncated: reward + gamma V(final obs)
+    values = torch.tensor([[0.5], [1.0], [1.5]])
+    next_values = torch.tensor([[1.0], [99.0], [2.0]])  # 99: the next episode's first state, must be ignored
+    dones = torch.tensor([[0.0], [1.0], [0.0]])
+    advantages, _ = prefppo.compute_gae(rewards, values, next_values, dones, gamma, lam)
+    a2 = 3 + 0.9 * 2.0 - 1.5
+    a1 = 2 + 0.9 * 7.0 - 1.0
+    a0 = (1 + 0.9 * 1.0 - 0.5) + gamma * lam * a1
+    torch.testing.assert_close(advantages[:, 0], torch.tensor([a0, a1, a2]))
+
+
+def test_autoreset_gives_the_final_observation_not_the_reset_one():
+    envs = gym.vector.SyncVectorEnv([lambda: gym.make("ConstantPenalty-v0")] * 2,
+                                    autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    obs, _ = envs.reset(seed=0)
+    zero = np.zeros((2, 2), dtype=np.float32)  # zero actions: the state never moves within an episode
+    for _ in range(40):
+        next_obs, _, terminated, truncated, infos = envs.step(zero)
+    done = terminated | truncated
+    assert done.all()  # 40-step episodes end together
+    real = prefppo.true_next_observations(next_obs, infos, done)
+    np.testing.assert_allclose(real, obs)  # the episode's own last state
+    assert not np.allclose(next_obs, obs)  # next_obs already starts the new episode
+    partial = prefppo.true_next_observations(next_obs, infos, np.array([True, False]))
+    np.testing.assert_allclose(partial[0], obs[0])
+    np.testing.assert_allclose(partial[1], next_obs[1])
+
+
+def test_rollout_reward_is_the_ensemble_mean_of_the_stored_raw_observation_and_action():
+    torch.manual_seed(0)
+    model = prefppo.RewardEnsemble(obs_dim=3, action_dim=2, size=3)
+    raw_obs, actions = torch.randn(4, 5, 3), torch.rand(4, 5, 2) * 2 - 1
+    rewards = prefppo.learned_rewards(model, raw_obs, actions)
+    assert rewards.shape == (4, 5)
+    t, n = 2, 3
+    by_hand = torch.stack([m(torch.cat([raw_obs[t, n], actions[t, n]])) for m in model.members]).mean()
+    assert rewards[t, n].item() == pytest.approx(by_hand.item(), rel=1e-6)
+    assert rewards.abs().max() <= 1  # tanh-bounded
+
+
+def test_running_mean_std_matches_numpy():
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(2.0, 3.0, size=(n, 4)) for n in (1, 32, 7)]
+    stats = prefppo.RunningMeanStd(4)
+    for batch in batches:
+        stats.update(batch)
+    everything = np.concatenate(batches)
+    np.testing.assert_allclose(stats.mean, everything.mean(0), rtol=1e-4)
+    np.testing.assert_allclose(stats.var, everything.var(0), rtol=1e-4)
+
+
+# ---------------------------------------------------------------- smoke runs
+
+
+def check_complete_run(out: Path, result, n_sessions: int, obs_dim: int, segment_len: int):
+    assert result.returncode == 0, result.stderr[-3000:]
+    counts = finished_counts(result.stdout)
+    assert counts["updates_on_knn_reward"] > 0 and counts["updates_on_learned_reward"] > 0
+    assert counts["value_resets"] == 1
+    assert len(re.findall(r"feedback session \d+:", result.stdout)) == n_sessions
+    rows = eval_rows(out)
+    assert {"step", "episode_return", "success_rate", "feedback", "reward_correlation"} <= set(rows[0])
+    assert math.isfinite(float(rows[-1]["reward_correlation"]))
+    labels = saved_labels(out)
+    assert len(labels) == n_sessions
+    for session in labels:
+        n = len(session["y"])
+        assert session["obs0"].shape == session["obs1"].shape == (n, segment_len, obs_dim)
+        assert session["rewards0"].shape == (n, segment_len)
+        # the oracle's labels agree with the saved true rewards of the saved (raw) segments
+        np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
+    assert list(out.glob("events.out.tfevents.*"))
+    return rows
+
+
+def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
+    out = tmp_path / "walker"
+    result = run_prefppo(out, "--env-id", "walker-walk", "--total-timesteps", "5000", "--unsup-steps", "2000",
+                         "--num-envs", "2", "--num-steps", "500", "--minibatch-size", "250", "--feedback-every", "1000",
+                         "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
+                         "--eval-every", "2500", *TINY)
+    rows = check_complete_run(out, result, n_sessions=3, obs_dim=24, segment_len=10)
+    assert [int(r["step"]) for r in rows] == [3000, 5000]
+    config = json.loads((out / "config.json").read_text())
+    assert config["gae_lambda"] == 0.92 and config["learning_rate"] == 5e-5  # walker-walk preset
+
+
+def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
+    out = tmp_path / "button"
+    result = run_prefppo(out, "--env-id", "button-press", "--total-timesteps", "3000", "--unsup-steps", "1000",
+                         "--num-envs", "2", "--num-steps", "250", "--minibatch-size", "125", "--feedback-every", "500",
+                         "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
+                         "--eval-every", "1500", *TINY)
+    rows = check_complete_run(out, result, n_sessions=3, obs_dim=39, segment_len=10)
+    assert all(0.0 <= float(r["success_rate"]) <= 1.0 for r in rows)
+
+
+PENDULUM = ["--env-id", "Pendulum-v1", "--total-timesteps", "4800", "--unsup-steps", "1600", "--num-envs", "4",
+            "--num-steps", "200", "--minibatch-size", "200", "--feedback-every", "800", "--max-feedback", "30",
+            "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "4800", *TINY]
+
+
+@pytest.mark.parametrize(
+    "teacher, sampler",
+    [("oracle", "uniform"), ("stoc", "disagreement"), ("mistake", "entropy"), ("skip", "disagreement"),
+     ("equal", "entropy-coverage"), ("myopic", "uniform")],
+)
+def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, sampler):
+    out = tmp_path / f"{teacher}_{sampler}"
+    result = run_prefppo(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(re.findall(r"feedback session \d+:", result.stdout)) == 3
+    labels = saved_labels(out)
+    y = np.concatenate([s["y"] for s in labels])
+    keep = np.concatenate([s["keep"] for s in labels])
+    assert len(y) == 30
+    if teacher == "skip":
+        assert (~keep).any() and np.isnan(y[~keep]).all()
+    if teacher == "equal":
+        assert (y == 0.5).any()
+
+
+def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
+    out = tmp_path / "truth"
+    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward")
+    assert result.returncode == 0, result.stderr[-3000:]
+    counts = finished_counts(result.stdout)
+    assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1}
+    assert not re.search(r"feedback session \d+:", result.stdout) and not saved_labels(out)
+
+
+def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
+    flags = [*PENDULUM, "--total-timesteps", "3200", "--eval-every", "1600"]
+    first, second = run_prefppo(tmp_path / "a", *flags), run_prefppo(tmp_path / "b", *flags)
+    assert first.returncode == second.returncode == 0
+    columns = ("step", "episode_return", "feedback", "reward_correlation")
+    assert [[r[c] for c in columns] for r in eval_rows(tmp_path / "a")] == [[r[c] for c in columns] for r in eval_rows(tmp_path / "b")]
+
+
+BAD_INPUTS = [
+    (["--env-id", "nowhere-walk"], "--env-id"),
+    (["--teacher", "sleepy"], "--teacher 'sleepy' is not one of oracle, stoc, mistake, skip, equal, myopic"),
+    (["--sampler", "best"], "--sampler 'best' is not one of uniform"),
+    (["--schedule", "random"], "--schedule 'random' is not one of uniform, decay, increase"),
+    (["--max-feedback", "-5"], "--max-feedback must be >= 1"),
+    (["--max-feedback", "100", "--feedback-per-session", "200"], "--feedback-per-session must be in [1, --max-feedback=100]"),
+    (["--segment-len", "5000"], "--segment-len must be in [1, 1000]"),
+    (["--teacher-gamma", "1.5"], "--teacher-gamma must be in (0, 1]"),
+    (["--teacher-beta", "-1"], "--teacher-beta must be >= 0"),
+    (["--num-envs", "2", "--num-steps", "10", "--minibatch-size", "64"], "--minibatch-size must be in [1, --num-envs x --num-steps = 20]"),
+    (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
+    (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
+]
+
+
+@pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])
+def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(tmp_path, flags, message):
+    out = tmp_path / "run"
+    result = run_prefppo(out, *flags, timeout=120)
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], result.stderr
+    assert not out.exists()
