@@ -305,11 +305,18 @@ class RunningMeanStd:
         return math.sqrt(self.var)
 
 
-def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 8192) -> torch.Tensor:
+def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
     """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state
-    itself (its zero distance): the (k+1)-th smallest distance. Eq. (8) without the log (README)."""
-    dists = torch.cat([torch.cdist(states, reference[i : i + chunk]) for i in range(0, len(reference), chunk)], dim=1)
-    return dists.topk(k + 1, dim=1, largest=False).values[:, -1:]
+    itself (its zero distance): the (k+1)-th smallest distance. Eq. (8) without the log (README).
+    Blocks of chunk x chunk distances keep the memory bounded; the k+1 nearest are merged per block."""
+    kth = []
+    for i in range(0, len(states), chunk):
+        nearest = torch.empty(len(states[i : i + chunk]), 0, device=states.device)
+        for j in range(0, len(reference), chunk):
+            candidates = torch.cat([nearest, torch.cdist(states[i : i + chunk], reference[j : j + chunk])], dim=1)
+            nearest = candidates.topk(min(k + 1, candidates.shape[1]), dim=1, largest=False).values
+        kth.append(nearest[:, -1:])
+    return torch.cat(kth)
 
 
 def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
