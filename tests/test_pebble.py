@@ -2,47 +2,22 @@
 (pre-training updates, feedback sessions, reward learning, relabelling, critic reset, evaluation),
 and bad input that must end with one line and a non-zero exit before any training."""
 
-import ast
-import csv
 import json
 import math
-import os
-import re
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 import pebble
+from tests.helpers import eval_rows, finished_counts, run_script, saved_labels, session_lines
 
-ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
         "--reward-batch-size", "32", "--eval-episodes", "1"]
-ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
 
 
-def run_pebble(out: Path, *flags: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(ROOT / "pebble.py"), "--output-dir", str(out), *flags]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
-
-
-def finished_counts(stdout: str) -> dict:
-    """The counters of the final 'done: {...}' line."""
-    match = re.search(r"^done: (\{.*?\})", stdout, re.M)
-    assert match, stdout[-2000:]
-    return ast.literal_eval(match.group(1))
-
-
-def eval_rows(out: Path) -> list[dict]:
-    with open(out / "eval.csv") as f:
-        return list(csv.DictReader(f))
-
-
-def saved_labels(out: Path) -> list[dict]:
-    return [dict(np.load(path)) for path in sorted((out / "labels").glob("session_*.npz"))]
+def run_pebble(out, *flags, timeout=600):
+    return run_script("pebble.py", out, *flags, timeout=timeout)
 
 
 # ---------------------------------------------------------------- unit tests of the quiet parts
@@ -115,12 +90,12 @@ def test_accuracy_does_not_count_equal_labels():
 def test_train_reward_learns_a_separable_preference():
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
-    inputs0, inputs1 = (torch.tensor(rng.normal(size=(256, 5, 4)), dtype=torch.float32) for _ in range(2))
+    inputs0, inputs1 = (torch.tensor(rng.normal(size=(128, 5, 4)), dtype=torch.float32) for _ in range(2))
     y = (inputs1[..., 0].sum(1) > inputs0[..., 0].sum(1)).float()  # true reward: the first feature
     model = pebble.RewardEnsemble(obs_dim=2, action_dim=2, size=3)
-    optimizer = torch.optim.Adam(model.parameters(), lr=3e-4)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
     args = pebble.Args(reward_batch_size=64)
-    _, accuracy = pebble.train_reward(model, optimizer, inputs0, inputs1, y, args, max_epochs=60)
+    _, accuracy = pebble.train_reward(model, optimizer, inputs0, inputs1, y, args, max_epochs=30)
     assert accuracy > 0.9
     with torch.no_grad():
         held_out = torch.tensor(rng.normal(size=(200, 1, 4)), dtype=torch.float32)
@@ -131,13 +106,13 @@ def test_train_reward_learns_a_separable_preference():
 # ---------------------------------------------------------------- smoke runs that reach every phase
 
 
-def check_complete_run(out: Path, result: subprocess.CompletedProcess, n_sessions: int, obs_dim: int, segment_len: int):
+def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: int):
     assert result.returncode == 0, result.stderr[-3000:]
     counts = finished_counts(result.stdout)
     assert counts["updates_on_knn_reward"] > 0  # gradient steps during unsupervised pre-training
     assert counts["updates_on_learned_reward"] > 0
     assert counts["critic_resets"] == 1 and counts["relabels"] == n_sessions
-    assert len(re.findall(r"feedback session \d+:", result.stdout)) == n_sessions
+    assert len(session_lines(result.stdout)) == n_sessions
     rows = eval_rows(out)
     assert {"step", "episode_return", "success_rate", "feedback", "reward_correlation"} <= set(rows[0])
     assert [int(r["feedback"]) for r in rows] == sorted(int(r["feedback"]) for r in rows)
@@ -227,7 +202,7 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
     counts = finished_counts(result.stdout)
     assert counts["updates_on_knn_reward"] == 200 and counts["updates_on_learned_reward"] == 700
     assert counts["critic_resets"] == 1 and counts["relabels"] == 0
-    assert not re.search(r"feedback session \d+:", result.stdout) and not saved_labels(out)
+    assert not session_lines(result.stdout) and not saved_labels(out)
     assert int(eval_rows(out)[-1]["feedback"]) == 0
 
 

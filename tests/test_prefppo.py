@@ -2,15 +2,8 @@
 reach every phase (pre-training updates, value reset, feedback sessions, PPO on r_hat, evaluation);
 bad input that must end with one line and a non-zero exit before any training."""
 
-import ast
-import csv
 import json
 import math
-import os
-import re
-import subprocess
-import sys
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -19,31 +12,14 @@ import torch
 
 import prefppo
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
+from tests.helpers import eval_rows, finished_counts, run_script, saved_labels, session_lines
 
-ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
         "--eval-episodes", "1", "--update-epochs", "2"]
-ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
 
 
-def run_prefppo(out: Path, *flags: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(ROOT / "prefppo.py"), "--output-dir", str(out), *flags]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
-
-
-def finished_counts(stdout: str) -> dict:
-    match = re.search(r"^done: (\{.*?\})", stdout, re.M)
-    assert match, stdout[-2000:]
-    return ast.literal_eval(match.group(1))
-
-
-def eval_rows(out: Path) -> list[dict]:
-    with open(out / "eval.csv") as f:
-        return list(csv.DictReader(f))
-
-
-def saved_labels(out: Path) -> list[dict]:
-    return [dict(np.load(path)) for path in sorted((out / "labels").glob("session_*.npz"))]
+def run_prefppo(out, *flags, timeout=600):
+    return run_script("prefppo.py", out, *flags, timeout=timeout)
 
 
 # ---------------------------------------------------------------- unit tests
@@ -123,12 +99,12 @@ def test_running_mean_std_matches_numpy():
 # ---------------------------------------------------------------- smoke runs
 
 
-def check_complete_run(out: Path, result, n_sessions: int, obs_dim: int, segment_len: int):
+def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: int):
     assert result.returncode == 0, result.stderr[-3000:]
     counts = finished_counts(result.stdout)
     assert counts["updates_on_knn_reward"] > 0 and counts["updates_on_learned_reward"] > 0
     assert counts["value_resets"] == 1
-    assert len(re.findall(r"feedback session \d+:", result.stdout)) == n_sessions
+    assert len(session_lines(result.stdout)) == n_sessions
     rows = eval_rows(out)
     assert {"step", "episode_return", "success_rate", "feedback", "reward_correlation"} <= set(rows[0])
     assert math.isfinite(float(rows[-1]["reward_correlation"]))
@@ -180,7 +156,7 @@ def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, s
     out = tmp_path / f"{teacher}_{sampler}"
     result = run_prefppo(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert len(re.findall(r"feedback session \d+:", result.stdout)) == 3
+    assert len(session_lines(result.stdout)) == 3
     labels = saved_labels(out)
     y = np.concatenate([s["y"] for s in labels])
     keep = np.concatenate([s["keep"] for s in labels])
@@ -197,7 +173,7 @@ def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     counts = finished_counts(result.stdout)
     assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1}
-    assert not re.search(r"feedback session \d+:", result.stdout) and not saved_labels(out)
+    assert not session_lines(result.stdout) and not saved_labels(out)
 
 
 def test_same_seed_gives_the_same_run_on_cpu(tmp_path):

@@ -1,0 +1,39 @@
+"""Running pebble.py / prefppo.py as a user would, and reading what a run wrote."""
+
+import ast
+import csv
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
+
+
+def run_script(script: str, out: Path, *flags: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
+
+
+def finished_counts(stdout: str) -> dict:
+    """The counters of the final 'done: {...}' line."""
+    match = re.search(r"^done: (\{.*?\})", stdout, re.M)
+    assert match, stdout[-2000:]
+    return ast.literal_eval(match.group(1))
+
+
+def session_lines(stdout: str) -> list[str]:
+    return re.findall(r"feedback session \d+:.*", stdout)
+
+
+def eval_rows(out: Path) -> list[dict]:
+    with open(out / "eval.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def saved_labels(out: Path) -> list[dict]:
+    return [dict(np.load(path)) for path in sorted((out / "labels").glob("session_*.npz"))]
