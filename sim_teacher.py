@@ -72,23 +72,27 @@ class SimTeacher:
             raise ValueError(
                 f"rewards0 and rewards1 must be 2-D arrays (N, H) of one shape, got {rewards0.shape} and {rewards1.shape}"
             )
-        returns0, returns1 = rewards0.sum(axis=1), rewards1.sum(axis=1)
+        n = len(rewards0)
+        if self.eps_skip > 0 or self.eps_equal > 0 or self.gamma == 1.0:  # undiscounted returns
+            returns0, returns1 = rewards0.sum(axis=1), rewards1.sum(axis=1)
 
         # Line 1: skip when even the better segment's (undiscounted) return is below delta_skip.
         # Only a teacher with eps_skip > 0 skips: the oracle's delta_skip = 0 must not skip
         # segments of negative return.
-        keep = np.ones(len(rewards0), dtype=bool)
+        keep = np.ones(n, dtype=bool)
         if self.eps_skip > 0:
             keep = np.maximum(returns0, returns1) >= self.delta_skip
         # Line 3: equally preferable when the undiscounted returns differ by less than delta_equal.
-        equal = np.abs(returns1 - returns0) < self.delta_equal
+        equal = np.zeros(n, dtype=bool)
+        if self.eps_equal > 0:
+            equal = np.abs(returns1 - returns0) < self.delta_equal
 
         # Line 5: Bradley-Terry choice of Eq. (1) on myopic sums sum_t gamma^(H-t) r_t.
         if self.gamma == 1.0:
             advantage = returns1 - returns0
         else:
             weights = self.gamma ** np.arange(rewards0.shape[1] - 1, -1, -1, dtype=np.float64)
-            advantage = (rewards1 - rewards0) @ weights
+            advantage = rewards1 @ weights - rewards0 @ weights
         if math.isinf(self.beta):  # the beta -> inf limit: the better segment; an exact tie is a coin flip
             prob_second = 0.5 * (1.0 + np.sign(advantage))
         else:  # sigmoid(beta * advantage), written with tanh so that no exp overflows
