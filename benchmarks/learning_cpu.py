@@ -92,9 +92,13 @@ if __name__ == "__main__":
     parser.add_argument("--parallel", type=int, default=2, help="runs at once (each gets one thread)")
     parser.add_argument("--out", type=Path, default=None, help="default: runs/bench_<algo>_cpu")
     parser.add_argument("--summarize-only", action="store_true")
+    parser.add_argument("--total-timesteps", type=int, default=None, help="a shorter (or longer) run than the preset")
     args = parser.parse_args()
     args.out = args.out or ROOT / "runs" / f"bench_{args.algo}_cpu"
     algo = ALGOS[args.algo]
+    if args.total_timesteps:
+        algo["total"] = args.total_timesteps
+        algo["common"] = [*algo["common"], "--total-timesteps", str(args.total_timesteps)]
     if not args.summarize_only:
         jobs = [(m, s) for s in args.seeds for m in algo["methods"] if not (args.out / f"{m}_seed{s}" / "eval.csv").exists()]
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONWARNINGS="ignore")
