@@ -37,3 +37,17 @@ def eval_rows(out: Path) -> list[dict]:
 
 def saved_labels(out: Path) -> list[dict]:
     return [dict(np.load(path)) for path in sorted((out / "labels").glob("session_*.npz"))]
+
+
+def eval_curve(out: Path) -> list[list[str]]:
+    """The columns of eval.csv that must not depend on timing."""
+    return [[row[c] for c in ("step", "episode_return", "feedback", "reward_correlation")] for row in eval_rows(out)]
+
+
+def assert_rejected(result, message: str, out: Path):
+    """A user's mistake: non-zero exit, one 'error: ...' line that names it, no traceback, nothing written."""
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], result.stderr
+    assert not out.exists()
