@@ -582,7 +582,7 @@ if __name__ == "__main__":
     rollout_shape = (args.num_steps, args.num_envs)
     raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
     obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
-    actions_buf = torch.zeros(*rollout_shape, action_dim, device=device)
+    actions_buf, env_actions_buf = (torch.zeros(*rollout_shape, action_dim, device=device) for _ in range(2))
     logprobs_buf, values_buf, next_values_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
     true_rewards_buf, bootstrap_buf, dones_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
     next_raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
@@ -619,10 +619,13 @@ if __name__ == "__main__":
                 action = distribution.sample()
                 logprobs_buf[step] = distribution.log_prob(action).sum(-1)
                 values_buf[step] = critic(obs)[:, 0]
-            next_raw_obs, true_reward, terminated, truncated, infos = envs.step(action.clamp(-1, 1).cpu().numpy())
+            env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
+            env_action_np = env_action.cpu().numpy()
+            next_raw_obs, true_reward, terminated, truncated, infos = envs.step(env_action_np)
             done = terminated | truncated
             real_next = true_next_observations(next_raw_obs, infos, done)
-            raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action.clamp(-1, 1)
+            raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action
+            env_actions_buf[step] = env_action
             next_raw_obs_buf[step] = torch.as_tensor(real_next)
             true_rewards_buf[step], dones_buf[step] = torch.as_tensor(true_reward), torch.as_tensor(done, dtype=torch.float32)
             with torch.no_grad():  # V of the state after this step; at a truncation it bootstraps the reward
@@ -631,7 +634,7 @@ if __name__ == "__main__":
             bootstrap_buf[step] = args.gamma * next_values * torch.as_tensor(truncated & ~terminated, dtype=torch.float32)
             for i in range(args.num_envs):
                 current[i][0].append(raw_obs[i])
-                current[i][1].append(action[i].clamp(-1, 1).cpu().numpy())
+                current[i][1].append(env_action_np[i])
                 current[i][2].append(true_reward[i])
                 episode_returns[i] += true_reward[i]
                 if done[i]:
@@ -656,7 +659,7 @@ if __name__ == "__main__":
             counts["updates_on_learned_reward"] += 1
         else:
             inference_start = time.perf_counter()
-            rewards = learned_rewards(reward_model, raw_obs_buf, actions_buf)
+            rewards = learned_rewards(reward_model, raw_obs_buf, env_actions_buf)
             overhead_seconds += time.perf_counter() - inference_start
             counts["updates_on_learned_reward"] += 1
         advantages, returns = compute_gae(rewards + bootstrap_buf, values_buf, next_values_buf, dones_buf,
