@@ -469,11 +469,12 @@ def check_finite(name: str, value: torch.Tensor):
 
 def atomic_torch_save(obj, path: str):
     """Write to a temporary file, flush it to disk, then rename: a kill during the write leaves the
-    previous file intact."""
-    tmp = f"{path}.tmp"
+    previous file intact. Serialised in memory first, so that a full disk is a plain OSError."""
+    tmp, serialised = f"{path}.tmp", io.BytesIO()
+    torch.save(obj, serialised)
     try:
         with open(tmp, "wb") as f:
-            torch.save(obj, f)
+            f.write(serialised.getbuffer())
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -1,15 +1,23 @@
 # PrefPPO (Christiano et al. 2017 with PPO) as benchmarked by B-Pref (Lee et al. 2021); docs and choices: README.md
 import csv
+import glob
 import importlib
+import io
 import json
 import math
 import os
+import pickle
+import shutil
+import signal
 import sys
 import time
+import zlib
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
+import cloudpickle
 import gymnasium as gym
+import mujoco
 import numpy as np
 import torch
 import torch.nn as nn
@@ -38,6 +46,12 @@ class Args:
     """if toggled, save a video of the first episode of each evaluation (needs moviepy)"""
     output_dir: str | None = None
     """where the run's files go (default: runs/<run name>)"""
+    checkpoint_every: int = 50000
+    """environment steps between checkpoints (taken after a rollout) (0 = only on SIGTERM/SIGINT and non-finite values)"""
+    resume: str | None = None
+    """continue the run in this directory from its checkpoint, with its saved configuration"""
+    labels_from: str | None = None
+    """seed the preference dataset with an earlier run's labels (its directory, labels/ or one .npz)"""
 
     # Algorithm specific arguments; None = the task's preset (PRESETS below)
     env_id: str = "walker-walk"
@@ -191,6 +205,10 @@ def env_kind(env_id: str) -> str:
     )
 
 
+def float32_observation(observation) -> np.ndarray:
+    return np.asarray(observation, dtype=np.float32)
+
+
 def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gym.Env, int]:
     """Returns (env, episode length T); actions rescaled to [-1, 1], observations flat float32."""
     kind = env_kind(env_id)
@@ -209,7 +227,7 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
         if episode_len is None:
             raise ValueError(f"--env-id {env_id!r} has no time limit (max_episode_steps), needed for the thresholds")
     env = gym.wrappers.RescaleAction(env, -1.0, 1.0)
-    env = gym.wrappers.TransformObservation(env, lambda o: np.asarray(o, dtype=np.float32), env.observation_space)
+    env = gym.wrappers.TransformObservation(env, float32_observation, env.observation_space)
     env.reset(seed=seed)  # seeds the env's generator once; later resets continue its sequence
     env.action_space.seed(seed)
     return env, episode_len
@@ -342,6 +360,7 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
                 loss = loss + preference_loss(returns, y[idx], args.label_smoothing)
                 c, m = preference_accuracy(returns.detach(), y[idx])
                 correct, counted = correct + c, counted + m
+            check_finite("reward-model loss", loss)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
@@ -397,14 +416,15 @@ def check_args(args: Args, episode_len: int) -> str | None:
          "--clip-coef and --max-grad-norm must be > 0, --ent-coef and --vf-coef >= 0"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
         (args.query_recent_episodes >= 1, f"--query-recent-episodes must be >= 1, got {args.query_recent_episodes}"),
+        (args.checkpoint_every >= 0, f"--checkpoint-every must be >= 0, got {args.checkpoint_every}"),
         (not args.cuda or torch.cuda.is_available(), "--cuda was given but torch sees no GPU"),
     ]
     return next((message for ok, message in checks if not ok), None)
 
 
-def fail(message: str):
+def fail(message: str, code: int = 2):
     print(f"error: {message}", file=sys.stderr)
-    sys.exit(2)
+    sys.exit(code)
 
 
 def write_atomic_npz(path: str, **arrays):
@@ -412,6 +432,125 @@ def write_atomic_npz(path: str, **arrays):
     tmp = f"{path}.tmp.npz"
     np.savez(tmp, **arrays)
     os.replace(tmp, path)
+
+
+# Checkpoint and resume: a run killed at any point continues exactly from its last checkpoint
+RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name")
+MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # time, qpos, qvel, act, warm start, controls, mocap
+
+
+class NonFiniteError(Exception):
+    """A NaN or infinity in a loss or in what the environment returned; the message names it."""
+
+
+def check_finite(name: str, value: torch.Tensor):
+    if not torch.isfinite(value).all():
+        raise NonFiniteError(f"non-finite {name} ({value.detach().flatten()[0].item()})")
+
+
+def atomic_torch_save(obj, path: str):
+    """Write to a temporary file, flush it to disk, then rename: a kill during the write leaves the
+    previous file intact. Serialised in memory first, so that a full disk is a plain OSError."""
+    tmp, serialised = f"{path}.tmp", io.BytesIO()
+    torch.save(obj, serialised)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(serialised.getbuffer())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def env_layers(env) -> list:
+    """The env and every env it wraps, outermost first."""
+    layers = [env]
+    while hasattr(layers[-1], "env"):
+        layers.append(layers[-1].env)
+    return layers
+
+
+class MujocoStatePickler(cloudpickle.Pickler):
+    """Pickles MuJoCo data as its integration state (restored exactly by MujocoStateUnpickler) and, as
+    cloudpickle does, the local functions of wrappers such as RescaleAction."""
+
+    def persistent_id(self, obj):
+        if isinstance(obj, mujoco.MjData):
+            state = np.empty(mujoco.mj_stateSize(obj.model, MUJOCO_STATE))
+            mujoco.mj_getState(obj.model, obj, state, MUJOCO_STATE)
+            return obj.model, state
+        return None
+
+
+class MujocoStateUnpickler(pickle.Unpickler):
+    def __init__(self, file):
+        super().__init__(file)
+        self.restored = []
+
+    def persistent_load(self, pid):
+        model, state = pid
+        self.restored.append((model, mujoco.MjData(model), state))
+        return self.restored[-1][1]
+
+
+def env_state(env) -> bytes:
+    """What the env needs to go on exactly: the attributes of every layer (Gymnasium's MuJoCo envs pickle
+    only their constructor arguments, so their attributes are pickled instead), renderers left out."""
+    layers = [{k: v for k, v in vars(layer).items() if k not in ("env", "mujoco_renderer")} for layer in env_layers(env)]
+    buffer = io.BytesIO()
+    MujocoStatePickler(buffer).dump(layers)
+    return zlib.compress(buffer.getvalue(), 1)  # MuJoCo models carry textures, which compress well
+
+
+def load_env_state(env, state: bytes):
+    """Puts env_state() into a fresh env made by make_env with the same id."""
+    unpickler = MujocoStateUnpickler(io.BytesIO(zlib.decompress(state)))
+    for layer, attributes in zip(env_layers(env), unpickler.load()):
+        vars(layer).update(attributes)
+    for model, data, mujoco_state in unpickler.restored:
+        mujoco.mj_setState(model, data, mujoco_state, MUJOCO_STATE)
+        mujoco.mj_forward(model, data)  # the derived quantities; dm_control's unpickling ran it on the old
+        mujoco.mj_setState(model, data, mujoco_state, MUJOCO_STATE)  # state, and it overwrites the warm start
+
+
+def resumed_args(args: Args) -> Args:
+    """--resume DIR: the configuration saved in DIR. A flag that would change the experiment is refused."""
+    if not os.path.isfile(os.path.join(args.resume, "checkpoint.pt")):
+        raise ValueError(f"--resume {args.resume!r}: no checkpoint.pt there (a run stopped before its first "
+                         "checkpoint has to start again)")
+    with open(os.path.join(args.resume, "config.json")) as f:
+        saved = json.load(f)
+    defaults = Args()
+    for field in fields(Args):
+        given = getattr(args, field.name)
+        if field.name not in RESUME_MAY_CHANGE and given not in (getattr(defaults, field.name), saved[field.name]):
+            raise ValueError(f"--{field.name.replace('_', '-')} cannot change when resuming (the run has "
+                             f"{saved[field.name]!r}, got {given!r}); start a new run for another configuration")
+    return Args(**{**saved, **{name: getattr(args, name) for name in RESUME_MAY_CHANGE}, "output_dir": args.resume})
+
+
+def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> dict:
+    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz), as
+    inputs0, inputs1 (obs and action per step), y and the coverage features."""
+    files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
+                                                      or glob.glob(os.path.join(path, "session_*.npz")))
+    if not files:
+        raise ValueError(f"--labels-from {path!r}: no labels found (expected session_*.npz files)")
+    sessions = []
+    for file in files:
+        with np.load(file) as data:
+            if data["obs0"].shape[1:] != (segment_len, obs_dim) or data["actions0"].shape[1:] != (segment_len, action_dim):
+                raise ValueError(f"--labels-from {file!r}: segments of shape {data['obs0'].shape[1:]} and actions "
+                                 f"{data['actions0'].shape[1:]} do not fit this run ({segment_len}, {obs_dim}) and "
+                                 f"({segment_len}, {action_dim})")
+            sessions.append({k: data[k][data["keep"]] for k in ("obs0", "actions0", "obs1", "actions1", "y")})
+    merged = {k: np.concatenate([s[k] for s in sessions]) for k in sessions[0]}
+    return {"inputs0": np.concatenate([merged["obs0"], merged["actions0"]], -1),
+            "inputs1": np.concatenate([merged["obs1"], merged["actions1"]], -1), "y": merged["y"].astype(np.float32),
+            "features": np.concatenate([merged["obs0"].reshape(len(merged["y"]), -1),
+                                        merged["obs1"].reshape(len(merged["y"]), -1)], axis=1)}
 
 
 def evaluate(actor, obs_stats, reward_model, env, episodes, device, video_env=None) -> dict:
@@ -444,14 +583,21 @@ def evaluate(actor, obs_stats, reward_model, env, episodes, device, video_env=No
 if __name__ == "__main__":
     args = tyro.cli(Args)
     try:
-        args = resolve(args)
+        args = resumed_args(args) if args.resume else resolve(args)
         env, episode_len = make_env(args.env_id, args.seed)
-    except ValueError as error:
+        problem = check_args(args, episode_len)
+        obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+        if not problem and args.labels_from and not args.resume:
+            imported_labels = load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
+    except (ValueError, OSError, KeyError) as error:
         fail(str(error))
-    env.close()
-    problem = check_args(args, episode_len)
     if problem:
         fail(problem)
+    try:
+        env_state(env)
+    except Exception as error:  # an env that cannot be pickled cannot be checkpointed
+        fail(f"--env-id {args.env_id!r} cannot be checkpointed ({type(error).__name__}: {error})")
+    env.close()
     if args.capture_video:
         try:
             import moviepy  # noqa: F401
@@ -459,15 +605,16 @@ if __name__ == "__main__":
             fail("--capture-video needs moviepy (pip install moviepy) and a renderer (MUJOCO_GL=egl or osmesa)")
     run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
     output_dir = args.output_dir or os.path.join("runs", run_name)
-    if os.path.isdir(output_dir) and os.listdir(output_dir):
-        fail(f"--output-dir {output_dir!r} already holds a run; choose another directory")
+    if not args.resume and os.path.isdir(output_dir) and os.listdir(output_dir):
+        fail(f"--output-dir {output_dir!r} already holds a run; continue it with --resume {output_dir} or choose another directory")
+    config = asdict(args)
     try:
         os.makedirs(os.path.join(output_dir, "labels"), exist_ok=True)
+        if not args.resume:
+            with open(os.path.join(output_dir, "config.json"), "w") as f:
+                json.dump(config, f, indent=2)
     except OSError as error:
-        fail(f"cannot create --output-dir {output_dir!r}: {error.strerror}")
-    config = asdict(args)
-    with open(os.path.join(output_dir, "config.json"), "w") as f:
-        json.dump(config, f, indent=2)
+        fail(f"cannot write to --output-dir {output_dir!r}: {error.strerror}")
     print("configuration:", json.dumps(config))
 
     from torch.utils.tensorboard import SummaryWriter
@@ -476,7 +623,11 @@ if __name__ == "__main__":
         import wandb
 
         wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=config, name=run_name, save_code=True)
-    writer = SummaryWriter(output_dir)
+    checkpoint = None
+    if args.resume:
+        checkpoint = torch.load(os.path.join(output_dir, "checkpoint.pt"), map_location="cpu", weights_only=False)
+        print(f"resuming from the checkpoint at step {checkpoint['progress']['global_step']}")
+    writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
     # Seeding: numpy (pairs, teacher via its own seed), torch (networks, actions), environments
@@ -496,7 +647,6 @@ if __name__ == "__main__":
     if args.capture_video:
         video_env, _ = make_env(args.env_id, args.seed + 20_000, render_mode="rgb_array")
         video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda e: True)
-    obs_dim, action_dim = envs.single_observation_space.shape[0], envs.single_action_space.shape[0]
 
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
@@ -512,6 +662,12 @@ if __name__ == "__main__":
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     preference_inputs0, preference_inputs1, preference_y, labelled_features = [], [], [], []
     feedback_used = sessions_done = 0
+    if args.labels_from and not args.resume:  # earlier labels: free, not counted in this run's budget
+        preference_inputs0.append(torch.as_tensor(imported_labels["inputs0"], device=device))
+        preference_inputs1.append(torch.as_tensor(imported_labels["inputs1"], device=device))
+        preference_y.append(torch.as_tensor(imported_labels["y"], device=device))
+        labelled_features.append(imported_labels["features"])
+        print(f"--labels-from: {len(imported_labels['y'])} labels from {args.labels_from}")
     # Annotation buffer: the last complete episodes in raw observations (obs, actions, true rewards)
     episodes = deque(maxlen=args.query_recent_episodes)
 
@@ -575,8 +731,6 @@ if __name__ == "__main__":
     eval_path = os.path.join(output_dir, "eval.csv")
     eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
                    "wall_time", "overhead_seconds"]
-    with open(eval_path, "w", newline="") as f:
-        csv.DictWriter(f, eval_fields).writeheader()
     counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, value_resets=0)
     overhead_seconds = 0.0  # time in the preference-learning parts: kNN reward, queries, reward learning
     rollout_shape = (args.num_steps, args.num_envs)
@@ -593,126 +747,210 @@ if __name__ == "__main__":
     next_feedback_step = args.unsup_steps
     next_eval_step, last_eval = args.eval_every, float("nan")
     reward_ready = False  # PPO trains on r_hat (or the true reward) instead of the kNN reward
-    global_step, start_time, last_print = 0, time.time(), time.time()
-    while global_step < args.total_timesteps:
-        # Feedback sessions at rollout boundaries: the first after pre-training, then every feedback_every
-        if global_step >= args.unsup_steps and not reward_ready and args.ground_truth_reward:
-            reward_ready = True
-        if (not args.ground_truth_reward and global_step >= next_feedback_step and sessions_done < len(session_sizes)
-                and any(len(e[2]) >= args.segment_len for e in episodes)):
-            session_start = time.perf_counter()
-            if feedback_session(int(session_sizes[sessions_done]), first=not reward_ready):
+    global_step, wall_time, eval_log = 0, 0.0, []  # eval_log: the rows of eval.csv
+    next_checkpoint_step = args.checkpoint_every
+    # The loop's progress: a checkpoint saves these names (and every object above), a resume restores them
+    progress_names = ["global_step", "wall_time", "raw_obs", "current", "episodes", "recent_returns", "episode_returns",
+                      "next_feedback_step", "next_eval_step", "next_checkpoint_step", "last_eval", "reward_ready",
+                      "feedback_used", "sessions_done", "counts", "overhead_seconds", "eval_log"]
+
+    def learner_state() -> dict:
+        """Every network and optimizer by name (the value reset replaces the critic and its optimizer)."""
+        return {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
+                "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
+
+    def save_checkpoint():
+        """Everything the run needs to go on exactly, after a rollout: networks, optimizers, normalisers,
+        preferences, annotation episodes, teacher, random generators, environments, counters and logs."""
+        save_start, path = time.perf_counter(), os.path.join(output_dir, "checkpoint.pt")
+        atomic_torch_save({
+            "progress": {name: globals()[name] for name in progress_names} | {"wall_time": time.time() - start_time},
+            **{name: part.state_dict() for name, part in learner_state().items()},
+            "obs_stats": vars(obs_stats), "intrinsic_stats": vars(intrinsic_stats),
+            "preferences": [preference_inputs0, preference_inputs1, preference_y, labelled_features],
+            "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if args.cuda else None,
+            "envs": [env_state(e) for e in envs.envs], "eval_env": env_state(eval_env),
+        }, path)
+        print(f"step {global_step}: checkpoint saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
+              f"{time.perf_counter() - save_start:.1f} s)", flush=True)
+
+    if checkpoint:  # --resume: put every saved part back
+        for name, part in learner_state().items():
+            part.load_state_dict(checkpoint[name])
+        vars(obs_stats).update(checkpoint["obs_stats"])
+        vars(intrinsic_stats).update(checkpoint["intrinsic_stats"])
+        preference_inputs0, preference_inputs1, preference_y = ([t.to(device) for t in part] for part in checkpoint["preferences"][:3])
+        labelled_features, teacher, rng = checkpoint["preferences"][3], checkpoint["teacher"], checkpoint["rng"]
+        torch.set_rng_state(checkpoint["torch_rng"])
+        if args.cuda:
+            torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
+        for sub_env, state in zip(envs.envs, checkpoint["envs"]):
+            load_env_state(sub_env, state)
+        load_env_state(eval_env, checkpoint["eval_env"])
+        globals().update(checkpoint["progress"])
+        if global_step >= args.total_timesteps:
+            fail(f"the run in {output_dir!r} has already finished ({global_step} steps)")
+        later_sessions = sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[sessions_done:]
+        if later_sessions:  # asked after the checkpoint: kept aside, the resumed run asks these sessions again
+            aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{global_step}")
+            os.makedirs(aside, exist_ok=True)
+            for path in later_sessions:
+                shutil.move(path, aside)
+    with open(f"{eval_path}.tmp", "w", newline="") as f:  # rows logged after the checkpoint are dropped
+        csv.DictWriter(f, eval_fields).writeheader()
+        csv.DictWriter(f, eval_fields).writerows(eval_log)
+    os.replace(f"{eval_path}.tmp", eval_path)
+
+    stop_signal = None
+
+    def request_stop(signum, frame):
+        """SIGTERM (a cluster's time limit) or SIGINT (Ctrl-C): checkpoint after this rollout, then exit."""
+        global stop_signal
+        stop_signal = signum
+
+    signal.signal(signal.SIGTERM, request_stop)
+    signal.signal(signal.SIGINT, request_stop)
+    start_time = last_print = time.time() - wall_time
+    try:
+        while global_step < args.total_timesteps:
+            # Feedback sessions at rollout boundaries: the first after pre-training, then every feedback_every
+            if global_step >= args.unsup_steps and not reward_ready and args.ground_truth_reward:
                 reward_ready = True
-            next_feedback_step = global_step + args.feedback_every
-            overhead_seconds += time.perf_counter() - session_start
-        if reward_ready and counts["value_resets"] == 0:  # the end of pre-training: a fresh value function
-            critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
-            critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
-            counts["value_resets"] += 1
+            if (not args.ground_truth_reward and global_step >= next_feedback_step and sessions_done < len(session_sizes)
+                    and any(len(e[2]) >= args.segment_len for e in episodes)):
+                session_start = time.perf_counter()
+                if feedback_session(int(session_sizes[sessions_done]), first=not reward_ready):
+                    reward_ready = True
+                next_feedback_step = global_step + args.feedback_every
+                overhead_seconds += time.perf_counter() - session_start
+            if reward_ready and counts["value_resets"] == 0:  # the end of pre-training: a fresh value function
+                critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
+                critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
+                counts["value_resets"] += 1
 
-        # Rollout of num_steps in every environment
-        for step in range(args.num_steps):
-            obs_stats.update(raw_obs)
-            obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
-            with torch.no_grad():
-                distribution = actor.distribution(obs)
-                action = distribution.sample()
-                logprobs_buf[step] = distribution.log_prob(action).sum(-1)
-                values_buf[step] = critic(obs)[:, 0]
-            env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
-            env_action_np = env_action.cpu().numpy()
-            next_raw_obs, true_reward, terminated, truncated, infos = envs.step(env_action_np)
-            done = terminated | truncated
-            real_next = true_next_observations(next_raw_obs, infos, done)
-            raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action
-            env_actions_buf[step] = env_action
-            next_raw_obs_buf[step] = torch.as_tensor(real_next)
-            true_rewards_buf[step], dones_buf[step] = torch.as_tensor(true_reward), torch.as_tensor(done, dtype=torch.float32)
-            with torch.no_grad():  # V of the state after this step; at a truncation it bootstraps the reward
-                next_values = critic(torch.as_tensor(obs_stats.normalize(real_next), device=device))[:, 0]
-            next_values_buf[step] = next_values
-            bootstrap_buf[step] = args.gamma * next_values * torch.as_tensor(truncated & ~terminated, dtype=torch.float32)
-            for i in range(args.num_envs):
-                current[i][0].append(raw_obs[i])
-                current[i][1].append(env_action_np[i])
-                current[i][2].append(true_reward[i])
-                episode_returns[i] += true_reward[i]
-                if done[i]:
-                    episodes.append(tuple(np.array(part, dtype=np.float32) for part in current[i]))
-                    recent_returns.append(episode_returns[i])
-                    writer.add_scalar("charts/episodic_return", episode_returns[i], global_step + step * args.num_envs)
-                    current[i], episode_returns[i] = ([], [], []), 0.0
-            raw_obs = next_raw_obs
-        global_step += args.num_envs * args.num_steps
-
-        # The reward PPO maximises: kNN state entropy (pre-training), r_hat (Algorithm 3) or the true reward
-        if not reward_ready:
-            knn_start = time.perf_counter()
-            flat_next = next_raw_obs_buf.reshape(-1, obs_dim)
-            intrinsic = knn_distance(flat_next, flat_next, args.knn_k)
-            intrinsic_stats.update(intrinsic.cpu().numpy())
-            rewards = (intrinsic / math.sqrt(intrinsic_stats.var[0] + 1e-8)).reshape(rollout_shape)
-            overhead_seconds += time.perf_counter() - knn_start
-            counts["updates_on_knn_reward"] += 1
-        elif args.ground_truth_reward:
-            rewards = true_rewards_buf.clone()
-            counts["updates_on_learned_reward"] += 1
-        else:
-            inference_start = time.perf_counter()
-            rewards = learned_rewards(reward_model, raw_obs_buf, env_actions_buf)
-            overhead_seconds += time.perf_counter() - inference_start
-            counts["updates_on_learned_reward"] += 1
-        advantages, returns = compute_gae(rewards + bootstrap_buf, values_buf, next_values_buf, dones_buf,
-                                          args.gamma, args.gae_lambda)
-
-        # PPO update (appendix Eqs. (4)-(5)): clipped surrogate, value regression, no entropy bonus
-        b_obs, b_actions = obs_buf.reshape(-1, obs_dim), actions_buf.reshape(-1, action_dim)
-        b_logprobs, b_advantages, b_returns, b_values = (x.reshape(-1) for x in (logprobs_buf, advantages, returns, values_buf))
-        batch_size, clip_fractions = b_obs.shape[0], []
-        for epoch in range(args.update_epochs):
-            order = torch.randperm(batch_size, device=device)
-            for start in range(0, batch_size, args.minibatch_size):
-                idx = order[start : start + args.minibatch_size]
-                distribution = actor.distribution(b_obs[idx])
-                log_ratio = distribution.log_prob(b_actions[idx]).sum(-1) - b_logprobs[idx]
-                ratio = log_ratio.exp()
+            # Rollout of num_steps in every environment
+            for step in range(args.num_steps):
+                obs_stats.update(raw_obs)
+                obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
                 with torch.no_grad():
-                    approx_kl = ((ratio - 1) - log_ratio).mean()
-                    clip_fractions.append(((ratio - 1).abs() > args.clip_coef).float().mean().item())
-                adv = b_advantages[idx]
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
-                policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
-                value_loss = 0.5 * ((critic(b_obs[idx])[:, 0] - b_returns[idx]) ** 2).mean()
-                entropy = distribution.entropy().sum(-1).mean()
-                loss = policy_loss - args.ent_coef * entropy + args.vf_coef * value_loss
-                actor_optimizer.zero_grad()
-                critic_optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
-                actor_optimizer.step()
-                critic_optimizer.step()
-        explained_variance = 1 - (b_returns - b_values).var() / b_returns.var().clamp(min=1e-8)
-        for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy, "approx_kl": approx_kl,
-                            "clipfrac": np.mean(clip_fractions), "explained_variance": explained_variance}.items():
-            writer.add_scalar(f"losses/{name}", float(value), global_step)
-        writer.add_scalar("charts/SPS", int(global_step / (time.time() - start_time)), global_step)
+                    distribution = actor.distribution(obs)
+                    action = distribution.sample()
+                    logprobs_buf[step] = distribution.log_prob(action).sum(-1)
+                    values_buf[step] = critic(obs)[:, 0]
+                env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
+                env_action_np = env_action.cpu().numpy()
+                next_raw_obs, true_reward, terminated, truncated, infos = envs.step(env_action_np)
+                if not (np.isfinite(true_reward).all() and np.isfinite(next_raw_obs).all()):
+                    raise NonFiniteError(f"non-finite reward ({true_reward.min()}) or observation from the environment")
+                done = terminated | truncated
+                real_next = true_next_observations(next_raw_obs, infos, done)
+                raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action
+                env_actions_buf[step] = env_action
+                next_raw_obs_buf[step] = torch.as_tensor(real_next)
+                true_rewards_buf[step], dones_buf[step] = torch.as_tensor(true_reward), torch.as_tensor(done, dtype=torch.float32)
+                with torch.no_grad():  # V of the state after this step; at a truncation it bootstraps the reward
+                    next_values = critic(torch.as_tensor(obs_stats.normalize(real_next), device=device))[:, 0]
+                next_values_buf[step] = next_values
+                bootstrap_buf[step] = args.gamma * next_values * torch.as_tensor(truncated & ~terminated, dtype=torch.float32)
+                for i in range(args.num_envs):
+                    current[i][0].append(raw_obs[i])
+                    current[i][1].append(env_action_np[i])
+                    current[i][2].append(true_reward[i])
+                    episode_returns[i] += true_reward[i]
+                    if done[i]:
+                        episodes.append(tuple(np.array(part, dtype=np.float32) for part in current[i]))
+                        recent_returns.append(episode_returns[i])
+                        writer.add_scalar("charts/episodic_return", episode_returns[i], global_step + step * args.num_envs)
+                        current[i], episode_returns[i] = ([], [], []), 0.0
+                raw_obs = next_raw_obs
+            global_step += args.num_envs * args.num_steps
 
-        if global_step >= next_eval_step or global_step >= args.total_timesteps:
-            next_eval_step += args.eval_every
-            result = evaluate(actor, obs_stats, reward_model if reward_ready and not args.ground_truth_reward else None,
-                              eval_env, args.eval_episodes, device, video_env)
-            last_eval = result["episode_return"]
-            row = {"step": global_step, **result, "feedback": feedback_used, "wall_time": round(time.time() - start_time, 1),
-                   "overhead_seconds": round(overhead_seconds, 1)}
-            with open(eval_path, "a", newline="") as f:
-                csv.DictWriter(f, eval_fields).writerow(row)
-            for name in ("episode_return", "success_rate", "reward_correlation"):
-                writer.add_scalar(f"eval/{name}", result[name], global_step)
-        if time.time() - last_print > 10 or global_step >= args.total_timesteps:
-            last_print = time.time()
-            sps = global_step / (last_print - start_time)
-            print(f"step {global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA {(args.total_timesteps - global_step) / sps / 60:.1f} min"
-                  f" | last eval return {last_eval:.1f} | labels {feedback_used}/{args.max_feedback}", flush=True)
+            # The reward PPO maximises: kNN state entropy (pre-training), r_hat (Algorithm 3) or the true reward
+            if not reward_ready:
+                knn_start = time.perf_counter()
+                flat_next = next_raw_obs_buf.reshape(-1, obs_dim)
+                intrinsic = knn_distance(flat_next, flat_next, args.knn_k)
+                intrinsic_stats.update(intrinsic.cpu().numpy())
+                rewards = (intrinsic / math.sqrt(intrinsic_stats.var[0] + 1e-8)).reshape(rollout_shape)
+                overhead_seconds += time.perf_counter() - knn_start
+                counts["updates_on_knn_reward"] += 1
+            elif args.ground_truth_reward:
+                rewards = true_rewards_buf.clone()
+                counts["updates_on_learned_reward"] += 1
+            else:
+                inference_start = time.perf_counter()
+                rewards = learned_rewards(reward_model, raw_obs_buf, env_actions_buf)
+                overhead_seconds += time.perf_counter() - inference_start
+                counts["updates_on_learned_reward"] += 1
+            advantages, returns = compute_gae(rewards + bootstrap_buf, values_buf, next_values_buf, dones_buf,
+                                              args.gamma, args.gae_lambda)
+
+            # PPO update (appendix Eqs. (4)-(5)): clipped surrogate, value regression, no entropy bonus
+            b_obs, b_actions = obs_buf.reshape(-1, obs_dim), actions_buf.reshape(-1, action_dim)
+            b_logprobs, b_advantages, b_returns, b_values = (x.reshape(-1) for x in (logprobs_buf, advantages, returns, values_buf))
+            batch_size, clip_fractions = b_obs.shape[0], []
+            for epoch in range(args.update_epochs):
+                order = torch.randperm(batch_size, device=device)
+                for start in range(0, batch_size, args.minibatch_size):
+                    idx = order[start : start + args.minibatch_size]
+                    distribution = actor.distribution(b_obs[idx])
+                    log_ratio = distribution.log_prob(b_actions[idx]).sum(-1) - b_logprobs[idx]
+                    ratio = log_ratio.exp()
+                    with torch.no_grad():
+                        approx_kl = ((ratio - 1) - log_ratio).mean()
+                        clip_fractions.append(((ratio - 1).abs() > args.clip_coef).float().mean().item())
+                    adv = b_advantages[idx]
+                    adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
+                    policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
+                    value_loss = 0.5 * ((critic(b_obs[idx])[:, 0] - b_returns[idx]) ** 2).mean()
+                    entropy = distribution.entropy().sum(-1).mean()
+                    loss = policy_loss - args.ent_coef * entropy + args.vf_coef * value_loss
+                    check_finite("PPO loss", loss)  # before the step: the networks stay finite
+                    actor_optimizer.zero_grad()
+                    critic_optimizer.zero_grad()
+                    loss.backward()
+                    nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
+                    actor_optimizer.step()
+                    critic_optimizer.step()
+            explained_variance = 1 - (b_returns - b_values).var() / b_returns.var().clamp(min=1e-8)
+            for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy, "approx_kl": approx_kl,
+                                "clipfrac": np.mean(clip_fractions), "explained_variance": explained_variance}.items():
+                writer.add_scalar(f"losses/{name}", float(value), global_step)
+            writer.add_scalar("charts/SPS", int(global_step / (time.time() - start_time)), global_step)
+
+            if global_step >= next_eval_step or global_step >= args.total_timesteps:
+                next_eval_step += args.eval_every
+                result = evaluate(actor, obs_stats, reward_model if reward_ready and not args.ground_truth_reward else None,
+                                  eval_env, args.eval_episodes, device, video_env)
+                last_eval = result["episode_return"]
+                row = {"step": global_step, **result, "feedback": feedback_used, "wall_time": round(time.time() - start_time, 1),
+                       "overhead_seconds": round(overhead_seconds, 1)}
+                with open(eval_path, "a", newline="") as f:
+                    csv.DictWriter(f, eval_fields).writerow(row)
+                eval_log.append(row)
+                for name in ("episode_return", "success_rate", "reward_correlation"):
+                    writer.add_scalar(f"eval/{name}", result[name], global_step)
+            if time.time() - last_print > 10 or global_step >= args.total_timesteps:
+                last_print = time.time()
+                sps = global_step / (last_print - start_time)
+                print(f"step {global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA {(args.total_timesteps - global_step) / sps / 60:.1f} min"
+                      f" | last eval return {last_eval:.1f} | labels {feedback_used}/{args.max_feedback}", flush=True)
+
+            if args.checkpoint_every and global_step >= next_checkpoint_step or stop_signal:
+                next_checkpoint_step = (global_step // args.checkpoint_every + 1) * args.checkpoint_every if args.checkpoint_every else 0
+                save_checkpoint()
+            if stop_signal:
+                print(f"{signal.Signals(stop_signal).name}: checkpoint saved at step {global_step}; "
+                      f"continue with --resume {output_dir}", flush=True)
+                sys.exit(128 + stop_signal)
+    except NonFiniteError as error:
+        save_checkpoint()  # the check comes before the optimizer step, so the saved state is finite
+        fail(f"{error} at step {global_step}; run stopped, its last finite state is in {output_dir}/checkpoint.pt "
+             f"and its labels in {output_dir}/labels", code=3)
+    except OSError as error:
+        fail(f"writing to {output_dir!r} failed at step {global_step} ({error.strerror or error}); "
+             "the last checkpoint there is intact", code=1)
 
     print(f"done: {counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
           f"{sessions_done} feedback sessions, {feedback_used} queries; outputs in {output_dir}")

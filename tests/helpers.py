@@ -51,3 +51,20 @@ def assert_rejected(result, message: str, out: Path):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], result.stderr
     assert not out.exists()
+
+
+def start_script(script: str, out: Path, *flags: str, **popen_kwargs) -> subprocess.Popen:
+    """A run in the background, to be killed or signalled."""
+    cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT, **popen_kwargs)
+
+
+def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
+    """Poll until `path` exists (the run reached a point); fails if the run ends first."""
+    import time
+
+    deadline = time.time() + timeout
+    while not path.exists():
+        assert process.poll() is None, f"the run ended before writing {path}: {process.communicate()}"
+        assert time.time() < deadline, f"{path} not written within {timeout} s"
+        time.sleep(0.02)

@@ -24,3 +24,24 @@ class ConstantPenaltyEnv(gym.Env):
 
 
 gym.register("ConstantPenalty-v0", entry_point=ConstantPenaltyEnv, max_episode_steps=40)
+
+
+class HugeRewardEnv(ConstantPenaltyEnv):
+    """Reward 1e30 at every step: finite, but a squared TD or value error overflows float32 to inf."""
+
+    def step(self, action):
+        return super().step(action)[0], 1e30, False, False, {}
+
+
+class NaNRewardEnv(ConstantPenaltyEnv):
+    """Returns a NaN reward on the 300th step of its life (a broken simulator)."""
+
+    steps = 0
+
+    def step(self, action):
+        self.steps += 1
+        return super().step(action)[0], float("nan") if self.steps == 300 else -1.0, False, False, {}
+
+
+gym.register("HugeReward-v0", entry_point=HugeRewardEnv, max_episode_steps=40)
+gym.register("NaNReward-v0", entry_point=NaNRewardEnv, max_episode_steps=40)

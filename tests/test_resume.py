@@ -1,0 +1,219 @@
+"""Long runs survive crashes and kills, in pebble.py and prefppo.py: checkpoints, --resume after SIGKILL
+and SIGTERM (compared with the uninterrupted run of the same seed), atomic checkpoint writes, --labels-from,
+non-finite stops and output-directory failures."""
+
+import resource
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import pebble
+import prefppo
+from tests.helpers import ROOT, ENV, eval_curve, eval_rows, finished_counts, run_script, saved_labels, start_script, wait_for
+
+# Tiny walker-walk runs. pebble: sessions at 1101, 1601, 2101, 2601, checkpoints at 1300 (mid-episode)
+# and 2600; prefppo: sessions at 2000, 3000, 4000, checkpoints after the rollouts ending at 2000 and 4000
+RUNS = {
+    "pebble.py": ["--env-id", "walker-walk", "--total-timesteps", "3000", "--seed-steps", "500", "--unsup-steps", "600",
+                  "--feedback-every", "500", "--max-feedback", "40", "--feedback-per-session", "10", "--segment-len", "10",
+                  "--eval-every", "500", "--checkpoint-every", "1300", "--hidden-dim", "32", "--num-layers", "2",
+                  "--batch-size", "32", "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"],
+    "prefppo.py": ["--env-id", "walker-walk", "--total-timesteps", "5000", "--unsup-steps", "1000", "--num-envs", "2",
+                   "--num-steps", "250", "--minibatch-size", "250", "--feedback-every", "1000", "--max-feedback", "40",
+                   "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1000", "--checkpoint-every",
+                   "2000", "--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
+                   "--eval-episodes", "1", "--update-epochs", "2"],
+}
+SCRIPTS = list(RUNS)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The reference: each tiny run once, from start to end."""
+    runs = {}
+    for script, flags in RUNS.items():
+        out = tmp_path_factory.mktemp("uninterrupted") / script
+        result = run_script(script, out, *flags)
+        assert result.returncode == 0, result.stderr[-3000:]
+        runs[script] = out
+    return runs
+
+
+def assert_same_run(resumed, reference):
+    """Equal evaluations (same steps, returns, labels, reward correlation), one row per step, same labels."""
+    steps = [row["step"] for row in eval_rows(resumed)]
+    assert len(steps) == len(set(steps))
+    np.testing.assert_allclose(np.array(eval_curve(resumed), float), np.array(eval_curve(reference), float), rtol=1e-6)
+    resumed_labels, reference_labels = saved_labels(resumed), saved_labels(reference)
+    assert len(resumed_labels) == len(reference_labels)
+    for a, b in zip(resumed_labels, reference_labels):
+        np.testing.assert_array_equal(a["y"], b["y"])
+        np.testing.assert_allclose(a["obs0"], b["obs0"], rtol=1e-6)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_sigkill_then_resume_equals_the_uninterrupted_run(script, tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    process = start_script(script, out, *RUNS[script])
+    wait_for(out / "checkpoint.pt", process)
+    wait_for(out / "labels" / "session_0001.npz", process)  # a session after the checkpoint, then the kill
+    process.send_signal(signal.SIGKILL)
+    process.communicate()
+    written_before_kill = len(eval_rows(out))
+
+    result = run_script(script, out, "--resume", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "resuming from the checkpoint at step" in result.stdout
+    assert len(eval_rows(out)) >= written_before_kill
+    assert_same_run(out, uninterrupted[script])
+    # the session asked after the checkpoint was asked again; its first answer is kept aside, not lost
+    assert list((out / "labels").glob("before_resume_at_step_*/session_0001.npz"))
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    process = start_script(script, out, *RUNS[script], "--checkpoint-every", "0")
+    wait_for(out / "labels" / "session_0000.npz", process)
+    process.send_signal(signal.SIGTERM)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM, stderr[-3000:]
+    assert "SIGTERM: checkpoint saved at step" in stdout and "Traceback" not in stderr
+    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert saved["progress"]["sessions_done"] >= 1
+
+    result = run_script(script, out, "--resume", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert_same_run(out, uninterrupted[script])  # --checkpoint-every changes nothing in the experiment
+
+
+@pytest.mark.parametrize("module", [pebble, prefppo])
+def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, tmp_path):
+    path = tmp_path / "checkpoint.pt"
+    module.atomic_torch_save({"step": 1, "weights": torch.ones(10)}, str(path))
+    # a second write killed half-way (SIGKILL from inside torch.save, after some bytes are out)
+    code = (f"import os, signal, torch, {module.__name__} as m\n"
+            "real_open = open\n"
+            "class HalfWritten:\n"  # the temporary file: some bytes reach the disk, then SIGKILL
+            "    def __init__(self, path, mode): self.f = real_open(path, mode)\n"
+            "    def __enter__(self): return self\n"
+            "    def __exit__(self, *a): pass\n"
+            "    def write(self, data): self.f.write(bytes(data)[:1000]); self.f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n"
+            "m.open = HalfWritten\n"
+            f"m.atomic_torch_save({{'step': 2}}, {str(path)!r})\n")
+    killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
+    assert killed.returncode == -signal.SIGKILL
+    assert torch.load(path, weights_only=False)["step"] == 1
+
+
+@pytest.mark.parametrize("env_id", ["walker-walk", "button-press", "tests.toy_envs:ConstantPenalty-v0"])
+def test_env_state_continues_the_episode_exactly(env_id):
+    env, episode_len = pebble.make_env(env_id, seed=1)
+    for _ in range(7):
+        env.step(env.action_space.sample())
+    copy, _ = pebble.make_env(env_id, seed=99)  # another seed: everything must come from the state
+    pebble.load_env_state(copy, pebble.env_state(env))
+    for _ in range(episode_len + 50):  # the rest of this episode, the reset, the next one
+        action = env.action_space.sample()
+        np.testing.assert_array_equal(copy.action_space.sample(), action)
+        step, copy_step = env.step(action), copy.step(action)
+        np.testing.assert_array_equal(step[0], copy_step[0])
+        assert step[1] == copy_step[1]
+        if step[2] or step[3]:
+            np.testing.assert_array_equal(env.reset()[0], copy.reset()[0])
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_labels_from_an_earlier_run_join_the_preference_dataset(script, tmp_path, uninterrupted):
+    flags = [f for f in RUNS[script]]
+    flags[flags.index("--max-feedback") + 1] = "10"
+    flags[flags.index("--total-timesteps") + 1] = "2300" if script == "pebble.py" else "3000"
+    result = run_script(script, tmp_path / "run", *flags, "--labels-from", str(uninterrupted[script]))
+    assert result.returncode == 0, result.stderr[-3000:]
+    imported = sum(int(session["keep"].sum()) for session in saved_labels(uninterrupted[script]))
+    assert f"--labels-from: {imported} labels from" in result.stdout
+    assert f"reward model trained on {imported + 10} labels" in result.stdout  # + the 10 of this run's session
+    assert finished_counts(result.stdout)
+    assert len(saved_labels(tmp_path / "run")) == 1  # only this run's own session is saved as its labels
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_labels_from_with_another_segment_length_is_refused(script, tmp_path, uninterrupted):
+    flags = [f for f in RUNS[script]]
+    flags[flags.index("--segment-len") + 1] = "20"
+    result = run_script(script, tmp_path / "run", *flags, "--labels-from", str(uninterrupted[script]))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.startswith("error: --labels-from") and "do not fit this run" in result.stderr
+    assert not (tmp_path / "run").exists()
+
+
+TOY = ["--seed-steps", "100", "--unsup-steps", "100", "--total-timesteps", "600", "--ground-truth-reward",
+       "--hidden-dim", "16", "--num-layers", "1", "--batch-size", "16", "--eval-every", "200", "--eval-episodes", "1",
+       "--segment-len", "10"]
+TOY_PPO = ["--unsup-steps", "80", "--total-timesteps", "640", "--num-envs", "2", "--num-steps", "40", "--minibatch-size",
+           "40", "--ground-truth-reward", "--hidden-dim", "16", "--num-layers", "1", "--eval-every", "200",
+           "--eval-episodes", "1", "--segment-len", "10", "--update-epochs", "1"]
+
+
+@pytest.mark.parametrize("script, flags, quantity", [
+    ("pebble.py", TOY, "critic loss"), ("prefppo.py", TOY_PPO, "PPO loss"),
+])
+def test_a_diverging_loss_stops_the_run_with_a_finite_checkpoint(script, flags, quantity, tmp_path):
+    out = tmp_path / "run"
+    result = run_script(script, out, "--env-id", "tests.toy_envs:HugeReward-v0", *flags)
+    assert result.returncode == 3 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: non-finite {quantity} (inf) at step "), result.stderr
+    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    for name in ("actor", "critic"):
+        assert all(torch.isfinite(t).all() for t in saved[name].values())
+
+
+@pytest.mark.parametrize("script, flags", [("pebble.py", TOY), ("prefppo.py", TOY_PPO)])
+def test_a_nan_from_the_environment_stops_the_run(script, flags, tmp_path):
+    result = run_script(script, tmp_path / "run", "--env-id", "tests.toy_envs:NaNReward-v0", *flags)
+    assert result.returncode == 3 and "Traceback" not in result.stderr
+    assert "error: non-finite reward (nan) or observation from the environment at step" in result.stderr
+    assert (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_path, uninterrupted):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    result = run_script(script, blocker / "run", *RUNS[script])
+    assert result.returncode == 2 and result.stderr.startswith("error: cannot write to --output-dir")
+    assert len(result.stderr.strip().splitlines()) == 1
+
+    existing = uninterrupted[script]
+    before = {p: p.stat().st_mtime_ns for p in existing.rglob("*")}
+    result = run_script(script, existing, *RUNS[script])
+    assert result.returncode == 2 and "already holds a run; continue it with --resume" in result.stderr
+    assert {p: p.stat().st_mtime_ns for p in existing.rglob("*")} == before
+
+    result = run_script(script, tmp_path / "x", "--resume", str(existing), "--seed", "7")
+    assert result.returncode == 2 and "error: --seed cannot change when resuming" in result.stderr
+    result = run_script(script, tmp_path / "x", "--resume", str(tmp_path))
+    assert result.returncode == 2 and "no checkpoint.pt there" in result.stderr
+
+
+def limit_file_size():
+    """A full disk, as seen by the writer: writes past 2 MiB fail with EFBIG (SIGXFSZ ignored)."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (2 * 2**20, 2 * 2**20))
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_path):
+    out = tmp_path / "run"
+    process = start_script(script, out, *RUNS[script], preexec_fn=limit_file_size)
+    stdout, stderr = process.communicate(timeout=300)
+    assert process.returncode == 1 and "Traceback" not in stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and "failed at step" in lines[0] and "the last checkpoint there is intact" in lines[0]
+    assert not (out / "checkpoint.pt").exists() and not (out / "checkpoint.pt.tmp").exists()
+    assert eval_rows(out)  # what was written before is there
