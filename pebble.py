@@ -841,7 +841,7 @@ if __name__ == "__main__":
         """Everything the run needs to go on exactly: networks, optimizers, temperature, replay buffer, kNN
         statistics, preferences, teacher, random generators, environments, counters and logs."""
         save_start, path = time.perf_counter(), os.path.join(output_dir, "checkpoint.pt")
-        buffer_part = {name: getattr(buffer, name)[: buffer.size] for name in ReplayBuffer.fields}
+        buffer_part = {name: getattr(buffer, name)[: buffer.size].clone() for name in ReplayBuffer.fields}  # not the empty rest
         atomic_torch_save({
             "progress": {name: globals()[name] for name in progress_names} | {"wall_time": time.time() - start_time},
             **{name: part.state_dict() for name, part in learner_state().items()},
