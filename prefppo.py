@@ -11,6 +11,7 @@ import shutil
 import signal
 import sys
 import time
+import warnings
 import zlib
 from collections import deque
 from dataclasses import asdict, dataclass, fields
@@ -43,7 +44,7 @@ class Args:
     wandb_project_name: str = "bpref"
     """the Weights & Biases project"""
     capture_video: bool = False
-    """if toggled, save a video of the first episode of each evaluation (needs moviepy)"""
+    """if toggled, record one extra mean-action episode after each evaluation to videos/step_N.mp4 (headless: MUJOCO_GL=egl)"""
     output_dir: str | None = None
     """where the run's files go (default: runs/<run name>)"""
     checkpoint_every: int = 50000
@@ -183,8 +184,10 @@ class DMCEnv(gym.Env):
 
 def env_kind(env_id: str) -> str:
     """'dmc', 'metaworld' or 'gym' for a known id; ValueError otherwise."""
-    from dm_control import suite
     import metaworld
+
+    with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
+        from dm_control import suite
 
     domain, _, task = env_id.partition("-")
     if (domain, task) in suite.ALL_TASKS:
@@ -553,20 +556,19 @@ def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> d
                                         merged["obs1"].reshape(len(merged["y"]), -1)], axis=1)}
 
 
-def evaluate(actor, obs_stats, reward_model, env, episodes, device, video_env=None) -> dict:
+def evaluate(actor, obs_stats, reward_model, env, episodes, device) -> dict:
     """Mean-action episodes with the true reward (B-Pref's metric), Meta-World success (success at any
     step), and the Pearson correlation of learned and true per-step rewards (the paper's reward analysis)."""
     returns, successes, true_rewards, learned = [], [], [], []
-    for episode in range(episodes):
-        run_env = video_env if (video_env is not None and episode == 0) else env
-        obs, _ = run_env.reset()
+    for _ in range(episodes):
+        obs, _ = env.reset()
         done, episode_return, success = False, 0.0, False
         while not done:
             with torch.no_grad():
                 action = actor.mean(torch.as_tensor(obs_stats.normalize(obs), device=device)).clamp(-1, 1)
                 if reward_model is not None:
                     learned.append(reward_model(torch.cat([torch.as_tensor(obs, device=device), action])).mean().item())
-            obs, reward, terminated, truncated, info = run_env.step(action.cpu().numpy())
+            obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
             done = terminated or truncated
             episode_return += reward
             true_rewards.append(reward)
@@ -578,6 +580,20 @@ def evaluate(actor, obs_stats, reward_model, env, episodes, device, video_env=No
         correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
+
+
+def record_video(actor, obs_stats, video_env, device, name: str):
+    """--capture-video: one more mean-action episode, saved as videos/<name>.mp4 and not counted in the
+    evaluation (so metrics and resumed runs are the same with or without videos)."""
+    obs, _ = video_env.reset()
+    video_env.start_recording(name)
+    done = False
+    while not done:
+        with torch.no_grad():
+            action = actor.mean(torch.as_tensor(obs_stats.normalize(obs), device=device)).clamp(-1, 1)
+        obs, _, terminated, truncated, _ = video_env.step(action.cpu().numpy())
+        done = terminated or truncated
+    video_env.stop_recording()  # writes the file now
 
 
 if __name__ == "__main__":
@@ -598,11 +614,19 @@ if __name__ == "__main__":
     except Exception as error:  # an env that cannot be pickled cannot be checkpointed
         fail(f"--env-id {args.env_id!r} cannot be checkpointed ({type(error).__name__}: {error})")
     env.close()
-    if args.capture_video:
+    video_env = None
+    if args.capture_video:  # render one frame now rather than fail at the first evaluation
         try:
             import moviepy  # noqa: F401
-        except ImportError:
-            fail("--capture-video needs moviepy (pip install moviepy) and a renderer (MUJOCO_GL=egl or osmesa)")
+
+            with warnings.catch_warnings(action="ignore"):  # GLFW warns before it fails without a display
+                video_env, _ = make_env(args.env_id, args.seed + 20_000, render_mode="rgb_array")
+                video_env.reset()
+                video_env.render()
+        except Exception as error:
+            print(f"error: --capture-video cannot render ({type(error).__name__}: {(str(error) or '-').splitlines()[0]}); it "
+                  "needs moviepy and, without a display, MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU)", file=sys.stderr, flush=True)
+            os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
     run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
     output_dir = args.output_dir or os.path.join("runs", run_name)
     if not args.resume and os.path.isdir(output_dir) and os.listdir(output_dir):
@@ -643,10 +667,8 @@ if __name__ == "__main__":
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
     eval_env, _ = make_env(args.env_id, args.seed + 10_000)
-    video_env = None
-    if args.capture_video:
-        video_env, _ = make_env(args.env_id, args.seed + 20_000, render_mode="rgb_array")
-        video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda e: True)
+    if video_env is not None:  # recorded on demand by record_video
+        video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda _: False)
 
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
@@ -922,7 +944,7 @@ if __name__ == "__main__":
             if global_step >= next_eval_step or global_step >= args.total_timesteps:
                 next_eval_step += args.eval_every
                 result = evaluate(actor, obs_stats, reward_model if reward_ready and not args.ground_truth_reward else None,
-                                  eval_env, args.eval_episodes, device, video_env)
+                                  eval_env, args.eval_episodes, device)
                 last_eval = result["episode_return"]
                 row = {"step": global_step, **result, "feedback": feedback_used, "wall_time": round(time.time() - start_time, 1),
                        "overhead_seconds": round(overhead_seconds, 1)}
@@ -931,6 +953,8 @@ if __name__ == "__main__":
                 eval_log.append(row)
                 for name in ("episode_return", "success_rate", "reward_correlation"):
                     writer.add_scalar(f"eval/{name}", result[name], global_step)
+                if video_env is not None:
+                    record_video(actor, obs_stats, video_env, device, f"step_{global_step}")
             if time.time() - last_print > 10 or global_step >= args.total_timesteps:
                 last_print = time.time()
                 sps = global_step / (last_print - start_time)
@@ -956,6 +980,7 @@ if __name__ == "__main__":
           f"{sessions_done} feedback sessions, {feedback_used} queries; outputs in {output_dir}")
     torch.save({"actor": actor.state_dict(), "critic": critic.state_dict(), "reward_model": reward_model.state_dict(),
                 "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}, os.path.join(output_dir, "final_model.pt"))
-    envs.close()
-    eval_env.close()
+    for each_env in (envs, eval_env, video_env):
+        if each_env is not None:
+            each_env.close()
     writer.close()

@@ -14,9 +14,10 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
 
 
-def run_script(script: str, out: Path, *flags: str, timeout: int = 600) -> subprocess.CompletedProcess:
+def run_script(script: str, out: Path, *flags: str, timeout: int = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+    """The script as a user runs it; `env` adds or overrides environment variables."""
     cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV | (env or {}), cwd=ROOT)
 
 
 def finished_counts(stdout: str) -> dict:
