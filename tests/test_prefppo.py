@@ -116,6 +116,9 @@ def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: 
         assert session["rewards0"].shape == (n, segment_len)
         # the oracle's labels agree with the saved true rewards of the saved (raw) segments
         np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
+    # segments hold the executed (clipped) actions: the initial policy (std 1) samples outside [-1, 1] ~30% of the time
+    actions = np.abs(np.concatenate([np.concatenate([s["actions0"], s["actions1"]]).ravel() for s in labels]))
+    assert actions.max() <= 1.0 and (actions == 1.0).mean() > 0.05
     assert list(out.glob("events.out.tfevents.*"))
     return rows
 
