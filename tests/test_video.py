@@ -14,7 +14,7 @@ PEBBLE_TINY = ["--env-id", "walker-walk", "--total-timesteps", "1200", "--seed-s
                "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
                "--eval-every", "600", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
                "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"]
-PREFPPO_TINY = ["--env-id", "button-press", "--ground-truth-reward", "--total-timesteps", "1000", "--unsup-steps", "500",
+PREFPPO_TINY = ["--env-id", "walker-walk", "--ground-truth-reward", "--total-timesteps", "1000", "--unsup-steps", "500",
                 "--num-envs", "2", "--num-steps", "250", "--minibatch-size", "125", "--eval-every", "1000",
                 "--hidden-dim", "32", "--num-layers", "2", "--eval-episodes", "1", "--update-epochs", "2"]
 
@@ -53,10 +53,21 @@ def test_pebble_records_one_video_per_evaluation_and_evaluates_as_without(tmp_pa
 
 
 @needs_egl
-def test_prefppo_records_a_metaworld_video(tmp_path):
+def test_prefppo_records_a_video(tmp_path):
     out = tmp_path / "video"
     result = run_script("prefppo.py", out, *PREFPPO_TINY, "--capture-video", env={"MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     assert [row["step"] for row in eval_rows(out)] == ["1000"]
     assert [p.name for p in (out / "videos").iterdir()] == ["step_1000.mp4"]
-    assert video_frames(out / "videos" / "step_1000.mp4") == 500  # a whole Meta-World episode
+    assert video_frames(out / "videos" / "step_1000.mp4") == 1000
+
+
+@needs_egl
+@pytest.mark.parametrize("env_id", ["walker-walk", "button-press"])
+def test_make_env_renders_rgb_frames(env_id):
+    """RecordVideo records whatever render() returns: DMC through dm_control, Meta-World through Gymnasium."""
+    code = (f"import pebble; env, _ = pebble.make_env({env_id!r}, 0, render_mode='rgb_array'); env.reset(); "
+            "frame = env.render(); print(frame.shape, frame.dtype, int(frame.std() > 0))")
+    probe = subprocess.run([sys.executable, "-c", code], env=ENV | {"MUJOCO_GL": "egl"}, capture_output=True, text=True)
+    height, width = (240, 320) if env_id == "walker-walk" else (480, 480)
+    assert probe.stdout.strip() == f"({height}, {width}, 3) uint8 1", probe.stderr[-2000:]
