@@ -438,7 +438,7 @@ def write_atomic_npz(path: str, **arrays):
 
 
 # Checkpoint and resume: a run killed at any point continues exactly from its last checkpoint
-RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name")
+RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name", "capture_video")
 MUJOCO_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # time, qpos, qvel, act, warm start, controls, mocap
 
 

@@ -1,12 +1,16 @@
 """--capture-video: a clear error without a renderer, and one video per evaluation that leaves the
 evaluation itself unchanged."""
 
+import json
 import subprocess
 import sys
+from dataclasses import asdict
 
 import imageio_ffmpeg
 import pytest
 
+import pebble
+import prefppo
 from tests.helpers import ENV, assert_rejected, eval_curve, eval_rows, run_script
 
 NO_DISPLAY = {"MUJOCO_GL": "glfw", "DISPLAY": "", "WAYLAND_DISPLAY": ""}
@@ -71,3 +75,15 @@ def test_make_env_renders_rgb_frames(env_id):
     probe = subprocess.run([sys.executable, "-c", code], env=ENV | {"MUJOCO_GL": "egl"}, capture_output=True, text=True)
     height, width = (240, 320) if env_id == "walker-walk" else (480, 480)
     assert probe.stdout.strip() == f"({height}, {width}, 3) uint8 1", probe.stderr[-2000:]
+
+
+@pytest.mark.parametrize("script", [pebble, prefppo])
+def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script):
+    """Videos are extra episodes outside the evaluation, so they do not change the experiment."""
+    saved = script.resolve(script.Args(output_dir=str(tmp_path)))
+    (tmp_path / "config.json").write_text(json.dumps(asdict(saved)))
+    (tmp_path / "checkpoint.pt").touch()
+    resumed = script.resumed_args(script.Args(resume=str(tmp_path), capture_video=True))
+    assert resumed.capture_video and asdict(resumed) == asdict(saved) | {"capture_video": True, "resume": str(tmp_path)}
+    with pytest.raises(ValueError, match="--seed cannot change"):
+        script.resumed_args(script.Args(resume=str(tmp_path), seed=saved.seed + 1))
