@@ -16,9 +16,9 @@ from tests.helpers import ENV, assert_rejected, eval_curve, eval_rows, run_scrip
 NO_DISPLAY = {"MUJOCO_GL": "glfw", "DISPLAY": "", "WAYLAND_DISPLAY": ""}
 PEBBLE_TINY = ["--env-id", "walker-walk", "--total-timesteps", "1200", "--seed-steps", "500", "--unsup-steps", "200",
                "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
-               "--eval-every", "600", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
+               "--eval-every", "1200", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
                "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"]
-PREFPPO_TINY = ["--env-id", "walker-walk", "--ground-truth-reward", "--total-timesteps", "1000", "--unsup-steps", "500",
+PREFPPO_TINY = ["--env-id", "InvertedPendulum-v5", "--ground-truth-reward", "--total-timesteps", "1000", "--unsup-steps", "500",
                 "--num-envs", "2", "--num-steps", "250", "--minibatch-size", "125", "--eval-every", "1000",
                 "--hidden-dim", "32", "--num-layers", "2", "--eval-episodes", "1", "--update-epochs", "2"]
 
@@ -44,26 +44,25 @@ def test_capture_video_without_a_renderer_is_a_one_line_error(tmp_path, script):
 
 
 @needs_egl
-def test_pebble_records_one_video_per_evaluation_and_evaluates_as_without(tmp_path):
+def test_pebble_records_a_video_and_evaluates_as_without(tmp_path):
     with_video, without = tmp_path / "video", tmp_path / "plain"
     result = run_script("pebble.py", with_video, *PEBBLE_TINY, "--capture-video", env={"MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     assert run_script("pebble.py", without, *PEBBLE_TINY).returncode == 0
-    steps = [row["step"] for row in eval_rows(with_video)]
-    assert steps == ["600", "1200"]
-    assert sorted(p.name for p in (with_video / "videos").iterdir()) == ["step_1200.mp4", "step_600.mp4"]
-    assert all(video_frames(with_video / "videos" / f"step_{s}.mp4") == 1000 for s in steps)  # a whole DMC episode
+    assert [row["step"] for row in eval_rows(with_video)] == ["1200"]
+    assert [p.name for p in (with_video / "videos").iterdir()] == ["step_1200.mp4"]
+    assert video_frames(with_video / "videos" / "step_1200.mp4") == 1000  # a whole DMC episode
     assert eval_curve(with_video) == eval_curve(without)  # the recorded episode is an extra one
 
 
 @needs_egl
-def test_prefppo_records_a_video(tmp_path):
+def test_prefppo_records_a_video_of_an_episode_that_terminates(tmp_path):
     out = tmp_path / "video"
     result = run_script("prefppo.py", out, *PREFPPO_TINY, "--capture-video", env={"MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     assert [row["step"] for row in eval_rows(out)] == ["1000"]
     assert [p.name for p in (out / "videos").iterdir()] == ["step_1000.mp4"]
-    assert video_frames(out / "videos" / "step_1000.mp4") == 1000
+    assert 1 <= video_frames(out / "videos" / "step_1000.mp4") <= 1000  # the pole falls early: the file is still written
 
 
 @needs_egl
