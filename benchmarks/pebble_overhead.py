@@ -14,6 +14,7 @@ Projected PEBBLE cost = sum over sessions of (50 epochs over the labels so far +
 buffer at that step + the session's selection) + r_hat for every step after the first session. 50
 epochs is the most a DMC session runs (the 97% early stop ends most sessions sooner), so the share
 is an upper bound. The kNN reward of pre-training is left out: the --ground-truth-reward run pays it too.
+It also prints how close reward training comes to this core's plain fp32 matmul throughput.
 """
 
 import argparse
@@ -103,6 +104,17 @@ def reward_unit_costs(repeats) -> dict:
     return costs
 
 
+def gemm_efficiency(epoch_per_label, repeats) -> tuple[float, float]:
+    """(reward training's GFLOP/s, this core's GFLOP/s on one plain fp32 matmul of the hidden layer's shape).
+    Training a row costs ~3x its forward multiply-adds (forward, input gradient, weight gradient)."""
+    forward_macs = (OBS_DIM + ACTION_DIM) * 256 + 2 * 256 * 256 + 256
+    rows_per_label = 2 * SEGMENT_LEN * ENSEMBLE
+    training = 2 * 3 * forward_macs * rows_per_label / epoch_per_label / 1e9
+    a, b = torch.randn(128 * SEGMENT_LEN, 256), torch.randn(256, 256)
+    plain = 2 * a.shape[0] * 256 * 256 / median_seconds(lambda: [a @ b for _ in range(20)], repeats) * 20 / 1e9
+    return training, plain
+
+
 def projected_overhead(costs, total, first_session, every, sessions, per_session) -> float:
     seconds = 0.0
     for k in range(sessions):
@@ -123,6 +135,9 @@ if __name__ == "__main__":
 
     costs = reward_unit_costs(args.repeats)
     print("unit costs (one thread): " + ", ".join(f"{k} {v * 1e3:.3g} ms" for k, v in costs.items()))
+    training_gflops, plain_gflops = gemm_efficiency(costs["epoch_per_label"], args.repeats)
+    print(f"reward training: {training_gflops:.0f} GFLOP/s = {training_gflops / plain_gflops:.0%} of one plain fp32 "
+          f"matmul of its hidden-layer shape ({plain_gflops:.0f} GFLOP/s): it is bound by the matrix products")
     print()
     print("| setting | SAC step (env + update) | SAC run | PEBBLE's own cost (at most) | share |")
     print("|---|---|---|---|---|")
