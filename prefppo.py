@@ -236,6 +236,17 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
     return env, episode_len
 
 
+def run_seeds(seed: int, num_envs: int) -> dict:
+    """Independent random streams from the run's seed (numpy SeedSequence.spawn): a seed for each training
+    env, one for the evaluation env and one for the video env, the query sampler's generator and the
+    teacher's seed. Env seeds are 32-bit draws, so runs with different seeds share none (up to a chance
+    of about num_envs^2 / 2^32); with env i seeded seed + i, runs s and s + 1 shared all but one."""
+    envs, evaluation, video, sampler, teacher = np.random.SeedSequence(seed).spawn(5)
+    return {"envs": [int(s) for s in envs.generate_state(num_envs)], "eval": int(evaluation.generate_state(1)[0]),
+            "video": int(video.generate_state(1)[0]), "sampler": np.random.default_rng(sampler),
+            "teacher": int(teacher.generate_state(1)[0])}
+
+
 def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> nn.Sequential:
     layers, dim = [], in_dim
     for _ in range(num_layers):
@@ -600,6 +611,8 @@ if __name__ == "__main__":
     args = tyro.cli(Args)
     try:
         args = resumed_args(args) if args.resume else resolve(args)
+        if args.seed < 0:  # before make_env: the env seeds are derived from it
+            raise ValueError(f"--seed must be >= 0, got {args.seed}")
         env, episode_len = make_env(args.env_id, args.seed)
         problem = check_args(args, episode_len)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
@@ -609,6 +622,7 @@ if __name__ == "__main__":
         fail(str(error))
     if problem:
         fail(problem)
+    seeds = run_seeds(args.seed, args.num_envs)
     try:
         env_state(env)
     except Exception as error:  # an env that cannot be pickled cannot be checkpointed
@@ -620,7 +634,7 @@ if __name__ == "__main__":
             import moviepy  # noqa: F401
 
             with warnings.catch_warnings(action="ignore"):  # GLFW warns before it fails without a display
-                video_env, _ = make_env(args.env_id, args.seed + 20_000, render_mode="rgb_array")
+                video_env, _ = make_env(args.env_id, seeds["video"], render_mode="rgb_array")
                 video_env.reset()
                 video_env.render()
         except Exception as error:
@@ -654,8 +668,8 @@ if __name__ == "__main__":
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
-    # Seeding: numpy (pairs, teacher via its own seed), torch (networks, actions), environments
-    rng = np.random.default_rng(args.seed)
+    # Seeding: numpy (query sampler; the teacher has its own stream), torch (networks, actions), environments
+    rng = seeds["sampler"]
     torch.manual_seed(args.seed)
     # MuJoCo's float64 states cast to float32 give denormal numbers (tiny velocities), which make
     # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
@@ -663,10 +677,10 @@ if __name__ == "__main__":
     torch.backends.cudnn.deterministic = args.torch_deterministic
     device = torch.device("cuda" if args.cuda else "cpu")
     envs = gym.vector.SyncVectorEnv(
-        [lambda i=i: make_env(args.env_id, args.seed + i)[0] for i in range(args.num_envs)],
+        [lambda i=i: make_env(args.env_id, seeds["envs"][i])[0] for i in range(args.num_envs)],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
-    eval_env, _ = make_env(args.env_id, args.seed + 10_000)
+    eval_env, _ = make_env(args.env_id, seeds["eval"])
     if video_env is not None:  # recorded on demand by record_video
         video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda _: False)
 
@@ -678,7 +692,7 @@ if __name__ == "__main__":
 
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    teacher = make_teacher(args.teacher, seed=args.seed, **{k: v for k, v in {
+    teacher = make_teacher(args.teacher, seed=seeds["teacher"], **{k: v for k, v in {
         "beta": args.teacher_beta, "gamma": args.teacher_gamma, "eps_mistake": args.teacher_eps_mistake,
         "eps_skip": args.teacher_eps_skip, "eps_equal": args.teacher_eps_equal}.items() if v is not None})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
@@ -765,7 +779,7 @@ if __name__ == "__main__":
     current = [([], [], []) for _ in range(args.num_envs)]  # the running episode of each env
     recent_returns = deque(maxlen=100)
     episode_returns = np.zeros(args.num_envs)
-    raw_obs, _ = envs.reset(seed=args.seed)
+    raw_obs, _ = envs.reset(seed=seeds["envs"])  # each env's own seed again, as make_env reset it
     next_feedback_step = args.unsup_steps
     next_eval_step, last_eval = args.eval_every, float("nan")
     reward_ready = False  # PPO trains on r_hat (or the true reward) instead of the kNN reward

@@ -96,6 +96,22 @@ def test_running_mean_std_matches_numpy():
     np.testing.assert_allclose(stats.var, everything.var(0), rtol=1e-4)
 
 
+def test_runs_with_different_seeds_share_no_environment_seed():
+    run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
+    seeds1, seeds2 = set(run1["envs"]) | {run1["eval"], run1["video"]}, set(run2["envs"]) | {run2["eval"], run2["video"]}
+    assert len(seeds1) == len(seeds2) == 34  # 32 training envs, evaluation and video: all different in a run
+    assert not seeds1 & seeds2  # env i used to get seed + i: runs 1 and 2 shared 31 of 32
+    assert prefppo.run_seeds(1, 32)["envs"] == run1["envs"]  # a run's seeds are reproducible
+    assert all(0 <= s < 2**32 for s in seeds1)  # dm_control's RandomState takes 32-bit seeds
+
+
+def test_query_sampler_and_teacher_draw_independent_streams():
+    seeds = prefppo.run_seeds(1, 4)
+    teacher = prefppo.make_teacher("stoc", seed=seeds["teacher"])
+    # with one seed for both (the old behaviour) these draws were the same numbers
+    assert not np.array_equal(seeds["sampler"].random(8), teacher.rng.random(8))
+
+
 # ---------------------------------------------------------------- smoke runs
 
 
@@ -199,6 +215,7 @@ BAD_INPUTS = [
     (["--num-envs", "2", "--num-steps", "10", "--minibatch-size", "64"], "--minibatch-size must be in [1, --num-envs x --num-steps = 20]"),
     (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
     (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
+    (["--seed", "-1"], "--seed must be >= 0, got -1"),
 ]
 
 
