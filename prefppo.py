@@ -247,24 +247,70 @@ def run_seeds(seed: int, num_envs: int) -> dict:
             "teacher": int(teacher.generate_state(1)[0])}
 
 
-def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> nn.Sequential:
+def hidden_layers(in_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> list[nn.Module]:
     layers, dim = [], in_dim
     for _ in range(num_layers):
         layers += [nn.Linear(dim, hidden_dim), activation()]
         dim = hidden_dim
-    return nn.Sequential(*layers, nn.Linear(dim, out_dim))
+    return layers
+
+
+def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> nn.Sequential:
+    return nn.Sequential(*hidden_layers(in_dim, hidden_dim, num_layers, activation),
+                         nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
+
+
+def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
+    """Orthogonal weights with this gain and zero biases for every linear layer of `module` (reference code:
+    SB3's ActorCriticPolicy init, gain sqrt(2) for hidden layers, 0.01 for the policy output, 1 for the value)."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, gain)
+            nn.init.zeros_(layer.bias)
+    return module
 
 
 class Actor(nn.Module):
-    """Gaussian policy with a state-independent log std; actions are clipped to [-1, 1] in the env."""
+    """Gaussian policy of the reference code's PPO (SB3's ActorCriticPolicy): a tanh MLP of its own (no layer
+    shared with the value function) whose last hidden features feed a linear mean, and a state-independent
+    log std initialised to 0; actions are clipped to [-1, 1] in the env."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
-        self.mean = mlp(obs_dim, action_dim, hidden_dim, num_layers)
+        self.body = orthogonal_init(nn.Sequential(*hidden_layers(obs_dim, hidden_dim, num_layers)), math.sqrt(2))
+        self.action_net = orthogonal_init(nn.Linear(hidden_dim, action_dim), 0.01)
         self.log_std = nn.Parameter(torch.zeros(action_dim))
 
+    def mean(self, obs):
+        return self.action_net(self.body(obs))
+
     def distribution(self, obs):
-        return torch.distributions.Normal(self.mean(obs), self.log_std.exp())
+        mean = self.mean(obs)
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+
+
+def make_critic(obs_dim: int, hidden_dim: int, num_layers: int) -> nn.Sequential:
+    """V(s): a tanh MLP of its own (reference code: separate pi and vf layers), SB3's init."""
+    critic = orthogonal_init(mlp(obs_dim, 1, hidden_dim, num_layers), math.sqrt(2))
+    orthogonal_init(critic[-1], 1.0)
+    return critic
+
+
+def reset_value_head(critic: nn.Sequential):
+    """The value reset after the first reward update (reference code: reset_value): only the output layer is
+    drawn again; the hidden layers, and the optimizer with its moments, are kept."""
+    orthogonal_init(critic[-1], 1.0)
+
+
+def ppo_loss(log_prob, old_log_prob, advantages, values, returns, entropy, clip: float, vf_coef: float,
+             ent_coef: float):
+    """Appendix Eqs. (4)-(5) as the reference code's PPO: the clipped surrogate on the (minibatch-normalised)
+    advantages, plus vf_coef x the MSE of V against the GAE returns (no value clipping), minus ent_coef x the
+    mean entropy. Returns (loss, policy_loss, value_loss, ratio)."""
+    ratio = (log_prob - old_log_prob).exp()
+    policy_loss = torch.max(-advantages * ratio, -advantages * ratio.clamp(1 - clip, 1 + clip)).mean()
+    value_loss = F.mse_loss(values, returns)
+    return policy_loss + vf_coef * value_loss - ent_coef * entropy, policy_loss, value_loss, ratio
 
 
 class RewardEnsemble(nn.Module):
@@ -685,7 +731,7 @@ if __name__ == "__main__":
         video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda _: False)
 
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
-    critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
+    critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate, eps=1e-5)
     critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
     obs_stats, intrinsic_stats = RunningMeanStd(obs_dim), RunningMeanStd(1)
@@ -791,7 +837,7 @@ if __name__ == "__main__":
                       "feedback_used", "sessions_done", "counts", "overhead_seconds", "eval_log"]
 
     def learner_state() -> dict:
-        """Every network and optimizer by name (the value reset replaces the critic and its optimizer)."""
+        """Every network and optimizer by name."""
         return {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
                 "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
 
@@ -860,9 +906,8 @@ if __name__ == "__main__":
                     reward_ready = True
                 next_feedback_step = global_step + args.feedback_every
                 overhead_seconds += time.perf_counter() - session_start
-            if reward_ready and counts["value_resets"] == 0:  # the end of pre-training: a fresh value function
-                critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
-                critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
+            if reward_ready and counts["value_resets"] == 0:  # the end of pre-training: a new value head
+                reset_value_head(critic)
                 counts["value_resets"] += 1
 
             # Rollout of num_steps in every environment
@@ -931,17 +976,15 @@ if __name__ == "__main__":
                 for start in range(0, batch_size, args.minibatch_size):
                     idx = order[start : start + args.minibatch_size]
                     distribution = actor.distribution(b_obs[idx])
-                    log_ratio = distribution.log_prob(b_actions[idx]).sum(-1) - b_logprobs[idx]
-                    ratio = log_ratio.exp()
-                    with torch.no_grad():
-                        approx_kl = ((ratio - 1) - log_ratio).mean()
-                        clip_fractions.append(((ratio - 1).abs() > args.clip_coef).float().mean().item())
                     adv = b_advantages[idx]
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
-                    policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
-                    value_loss = 0.5 * ((critic(b_obs[idx])[:, 0] - b_returns[idx]) ** 2).mean()
                     entropy = distribution.entropy().sum(-1).mean()
-                    loss = policy_loss - args.ent_coef * entropy + args.vf_coef * value_loss
+                    loss, policy_loss, value_loss, ratio = ppo_loss(
+                        distribution.log_prob(b_actions[idx]).sum(-1), b_logprobs[idx], adv, critic(b_obs[idx])[:, 0],
+                        b_returns[idx], entropy, args.clip_coef, args.vf_coef, args.ent_coef)
+                    with torch.no_grad():
+                        approx_kl = ((ratio - 1) - ratio.log()).mean()
+                        clip_fractions.append(((ratio - 1).abs() > args.clip_coef).float().mean().item())
                     check_finite("PPO loss", loss)  # before the step: the networks stay finite
                     actor_optimizer.zero_grad()
                     critic_optimizer.zero_grad()

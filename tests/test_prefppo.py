@@ -96,6 +96,68 @@ def test_running_mean_std_matches_numpy():
     np.testing.assert_allclose(stats.var, everything.var(0), rtol=1e-4)
 
 
+def assert_orthogonal(weight: torch.Tensor, gain: float):
+    """W W^T = gain^2 I (rows orthonormal) or W^T W = gain^2 I (columns), whichever side is the smaller."""
+    product = weight @ weight.T if weight.shape[0] <= weight.shape[1] else weight.T @ weight
+    torch.testing.assert_close(product, gain**2 * torch.eye(len(product)), atol=1e-5, rtol=1e-4)
+
+
+def test_networks_start_with_sb3_orthogonal_init():
+    torch.manual_seed(0)
+    actor, critic = prefppo.Actor(24, 6, 64, 3), prefppo.make_critic(24, 64, 3)
+    actor_hidden = [m for m in actor.body if isinstance(m, torch.nn.Linear)]
+    critic_linear = [m for m in critic if isinstance(m, torch.nn.Linear)]
+    assert len(actor_hidden) == len(critic_linear) - 1 == 3
+    for layer in actor_hidden + critic_linear[:-1]:  # hidden layers: gain sqrt(2)
+        assert_orthogonal(layer.weight.detach(), math.sqrt(2))
+    assert_orthogonal(actor.action_net.weight.detach(), 0.01)  # policy output: 0.01
+    assert_orthogonal(critic_linear[-1].weight.detach(), 1.0)  # value output: 1
+    for layer in actor_hidden + critic_linear + [actor.action_net]:
+        assert not layer.bias.any()
+    assert not actor.log_std.any()  # log std 0: std 1
+
+
+def test_value_reset_redraws_only_the_output_layer_and_keeps_the_optimizer():
+    torch.manual_seed(0)
+    critic = prefppo.make_critic(5, 16, 2)
+    optimizer = torch.optim.Adam(critic.parameters(), lr=1e-2, eps=1e-5)
+    for _ in range(3):  # trained a little: the optimizer has moments, the output layer has moved
+        optimizer.zero_grad()
+        ((critic(torch.randn(32, 5))[:, 0] - 3.0) ** 2).mean().backward()
+        optimizer.step()
+    before = {name: p.detach().clone() for name, p in critic.named_parameters()}
+    moments = {id(p): {k: v.clone() for k, v in optimizer.state[p].items()} for p in critic.parameters()}
+    params_before = list(critic.parameters())
+    prefppo.reset_value_head(critic)
+    hidden = [name for name in before if not name.startswith(f"{len(critic) - 1}.")]
+    assert len(hidden) == 4  # two hidden layers' weights and biases
+    for name in hidden:
+        torch.testing.assert_close(dict(critic.named_parameters())[name], before[name], rtol=0, atol=0)
+    output = critic[-1]
+    assert not torch.equal(output.weight, before[f"{len(critic) - 1}.weight"])
+    assert_orthogonal(output.weight.detach(), 1.0)
+    assert not output.bias.any()
+    # the same parameter objects, still the optimizer's, with their Adam moments untouched
+    assert all(a is b for a, b in zip(critic.parameters(), params_before))
+    assert all(any(p is q for q in optimizer.param_groups[0]["params"]) for p in critic.parameters())
+    for p in critic.parameters():
+        for key, value in moments[id(p)].items():
+            torch.testing.assert_close(optimizer.state[p][key], value, rtol=0, atol=0)
+
+
+def test_ppo_loss_weighs_the_value_mse_by_vf_coef_once():
+    log_prob = torch.log(torch.tensor([1.5, 0.5]))  # ratios 1.5 and 0.5 against old log-probs 0
+    advantages = torch.tensor([1.0, -1.0])
+    values, returns = torch.tensor([1.0, 3.0]), torch.tensor([2.0, 1.0])
+    loss, policy_loss, value_loss, ratio = prefppo.ppo_loss(log_prob, torch.zeros(2), advantages, values, returns,
+                                                            entropy=torch.tensor(0.7), clip=0.2, vf_coef=0.5, ent_coef=0.1)
+    torch.testing.assert_close(ratio, torch.tensor([1.5, 0.5]))
+    # sample 0: max(-1.5, -1.2) = -1.2 (clipped at 1.2); sample 1: max(0.5, 0.8) = 0.8 (clipped at 0.8)
+    assert policy_loss.item() == pytest.approx((-1.2 + 0.8) / 2)
+    assert value_loss.item() == pytest.approx((1 + 4) / 2)  # plain MSE
+    assert loss.item() == pytest.approx(-0.2 + 0.5 * 2.5 - 0.1 * 0.7)  # 0.5 x MSE in total, not 0.25
+
+
 def test_runs_with_different_seeds_share_no_environment_seed():
     run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
     seeds1, seeds2 = set(run1["envs"]) | {run1["eval"], run1["video"]}, set(run2["envs"]) | {run2["eval"], run2["video"]}
