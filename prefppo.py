@@ -95,8 +95,10 @@ class Args:
     """parallel environments"""
     num_steps: int | None = None
     """rollout length per environment"""
-    update_epochs: int = 10
-    """PPO epochs over each rollout"""
+    update_epochs: int = 20
+    """PPO epochs over each rollout after pre-training (reference code: n_epochs 20)"""
+    unsup_update_epochs: int = 50
+    """PPO epochs over each rollout of unsupervised pre-training (reference code: unsuper_n_epochs 50)"""
     minibatch_size: int | None = None
     """PPO minibatch size"""
     gamma: float = 0.99
@@ -104,7 +106,7 @@ class Args:
     gae_lambda: float | None = None
     """GAE lambda"""
     clip_coef: float = 0.4
-    """PPO clip range (paper: 0.4)"""
+    """initial PPO clip range (paper: 0.4), decayed linearly to 0 over training (reference code)"""
     ent_coef: float = 0.0
     """entropy bonus (paper: 0)"""
     vf_coef: float = 0.5
@@ -302,6 +304,12 @@ def reset_value_head(critic: nn.Sequential):
     orthogonal_init(critic[-1], 1.0)
 
 
+def clip_range(clip_coef: float, global_step: int, total_timesteps: int) -> float:
+    """The clip range of the update after the rollout that reached global_step (reference code: linear_schedule
+    of SB3's progress_remaining = 1 - steps done / total steps): clip_coef at the start, 0 at the end."""
+    return clip_coef * max(0.0, 1.0 - global_step / total_timesteps)
+
+
 def ppo_loss(log_prob, old_log_prob, advantages, values, returns, entropy, clip: float, vf_coef: float,
              ent_coef: float):
     """Appendix Eqs. (4)-(5) as the reference code's PPO: the clipped surrogate on the (minibatch-normalised)
@@ -461,7 +469,8 @@ def check_args(args: Args, episode_len: int) -> str | None:
         (1 <= args.segment_len <= episode_len,
          f"--segment-len must be in [1, {episode_len}] (the episode length of {args.env_id}), got {args.segment_len}"),
         (args.unsup_steps >= 0, f"--unsup-steps must be >= 0, got {args.unsup_steps}"),
-        (min(args.num_envs, args.num_steps, args.update_epochs) >= 1, "--num-envs, --num-steps and --update-epochs must be >= 1"),
+        (min(args.num_envs, args.num_steps, args.update_epochs, args.unsup_update_epochs) >= 1,
+         "--num-envs, --num-steps, --update-epochs and --unsup-update-epochs must be >= 1"),
         (1 <= args.minibatch_size <= rollout,
          f"--minibatch-size must be in [1, --num-envs x --num-steps = {rollout}], got {args.minibatch_size}"),
         (args.total_timesteps > args.unsup_steps and args.total_timesteps >= rollout,
@@ -813,7 +822,7 @@ if __name__ == "__main__":
     eval_path = os.path.join(output_dir, "eval.csv")
     eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
                    "wall_time", "overhead_seconds"]
-    counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, value_resets=0)
+    counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, value_resets=0, ppo_epochs=0)
     overhead_seconds = 0.0  # time in the preference-learning parts: kNN reward, queries, reward learning
     rollout_shape = (args.num_steps, args.num_envs)
     raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
@@ -971,7 +980,9 @@ if __name__ == "__main__":
             b_obs, b_actions = obs_buf.reshape(-1, obs_dim), actions_buf.reshape(-1, action_dim)
             b_logprobs, b_advantages, b_returns, b_values = (x.reshape(-1) for x in (logprobs_buf, advantages, returns, values_buf))
             batch_size, clip_fractions = b_obs.shape[0], []
-            for epoch in range(args.update_epochs):
+            clip = clip_range(args.clip_coef, global_step, args.total_timesteps)
+            epochs = args.update_epochs if reward_ready else args.unsup_update_epochs
+            for epoch in range(epochs):
                 order = torch.randperm(batch_size, device=device)
                 for start in range(0, batch_size, args.minibatch_size):
                     idx = order[start : start + args.minibatch_size]
@@ -981,10 +992,10 @@ if __name__ == "__main__":
                     entropy = distribution.entropy().sum(-1).mean()
                     loss, policy_loss, value_loss, ratio = ppo_loss(
                         distribution.log_prob(b_actions[idx]).sum(-1), b_logprobs[idx], adv, critic(b_obs[idx])[:, 0],
-                        b_returns[idx], entropy, args.clip_coef, args.vf_coef, args.ent_coef)
+                        b_returns[idx], entropy, clip, args.vf_coef, args.ent_coef)
                     with torch.no_grad():
                         approx_kl = ((ratio - 1) - ratio.log()).mean()
-                        clip_fractions.append(((ratio - 1).abs() > args.clip_coef).float().mean().item())
+                        clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
                     check_finite("PPO loss", loss)  # before the step: the networks stay finite
                     actor_optimizer.zero_grad()
                     critic_optimizer.zero_grad()
@@ -992,7 +1003,9 @@ if __name__ == "__main__":
                     nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
                     actor_optimizer.step()
                     critic_optimizer.step()
+            counts["ppo_epochs"] += epochs
             explained_variance = 1 - (b_returns - b_values).var() / b_returns.var().clamp(min=1e-8)
+            writer.add_scalar("charts/clip_range", clip, global_step)
             for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy, "approx_kl": approx_kl,
                                 "clipfrac": np.mean(clip_fractions), "explained_variance": explained_variance}.items():
                 writer.add_scalar(f"losses/{name}", float(value), global_step)

@@ -15,7 +15,7 @@ import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
 from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
-        "--eval-episodes", "1", "--update-epochs", "2"]
+        "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"]
 
 
 def run_prefppo(out, *flags, timeout=600):
@@ -158,6 +158,20 @@ def test_ppo_loss_weighs_the_value_mse_by_vf_coef_once():
     assert loss.item() == pytest.approx(-0.2 + 0.5 * 2.5 - 0.1 * 0.7)  # 0.5 x MSE in total, not 0.25
 
 
+def test_clip_range_decays_linearly_from_its_initial_value_to_zero():
+    total = 4_000_000
+    assert prefppo.clip_range(0.4, 0, total) == pytest.approx(0.4)
+    assert prefppo.clip_range(0.4, 16_000, total) == pytest.approx(0.4 * (1 - 16_000 / total))  # first update
+    assert prefppo.clip_range(0.4, total // 2, total) == pytest.approx(0.2)
+    assert prefppo.clip_range(0.4, total, total) == 0.0
+    assert prefppo.clip_range(0.4, total + 16_000, total) == 0.0  # a last rollout past the total: never negative
+
+
+def test_ppo_epochs_default_to_the_reference_runs():
+    args = prefppo.Args()
+    assert (args.update_epochs, args.unsup_update_epochs) == (20, 50)
+
+
 def test_runs_with_different_seeds_share_no_environment_seed():
     run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
     seeds1, seeds2 = set(run1["envs"]) | {run1["eval"], run1["video"]}, set(run2["envs"]) | {run2["eval"], run2["video"]}
@@ -250,10 +264,11 @@ def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, s
 
 def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     out = tmp_path / "truth"
-    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward")
+    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--unsup-update-epochs", "3")
     assert result.returncode == 0, result.stderr[-3000:]
     counts = finished_counts(result.stdout)
-    assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1}
+    # 2 pre-training rollouts of 3 epochs, then 4 rollouts of --update-epochs 2 (TINY)
+    assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1, "ppo_epochs": 14}
     assert not session_lines(result.stdout) and not saved_labels(out)
 
 

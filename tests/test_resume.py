@@ -26,7 +26,7 @@ RUNS = {
                    "--num-steps", "250", "--minibatch-size", "250", "--feedback-every", "1000", "--max-feedback", "40",
                    "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1000", "--checkpoint-every",
                    "2000", "--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
-                   "--eval-episodes", "1", "--update-epochs", "2"],
+                   "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"],
 }
 SCRIPTS = list(RUNS)
 
@@ -156,7 +156,7 @@ TOY = ["--seed-steps", "100", "--unsup-steps", "100", "--total-timesteps", "600"
        "--segment-len", "10"]
 TOY_PPO = ["--unsup-steps", "80", "--total-timesteps", "640", "--num-envs", "2", "--num-steps", "40", "--minibatch-size",
            "40", "--ground-truth-reward", "--hidden-dim", "16", "--num-layers", "1", "--eval-every", "200",
-           "--eval-episodes", "1", "--segment-len", "10", "--update-epochs", "1"]
+           "--eval-episodes", "1", "--segment-len", "10", "--update-epochs", "1", "--unsup-update-epochs", "1"]
 
 
 @pytest.mark.parametrize("script, flags, quantity", [
