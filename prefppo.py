@@ -105,6 +105,11 @@ class Args:
     """discount"""
     gae_lambda: float | None = None
     """GAE lambda"""
+    use_sde: bool = True
+    """generalized state-dependent exploration, gSDE (reference code: use_sde 1); --no-use-sde: a
+    state-independent Gaussian"""
+    sde_freq: int = 4
+    """gSDE: steps of each env between new exploration matrices (reference code: sde_freq 4)"""
     clip_coef: float = 0.4
     """initial PPO clip range (paper: 0.4), decayed linearly to 0 over training (reference code)"""
     ent_coef: float = 0.0
@@ -272,23 +277,64 @@ def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
     return module
 
 
+def sde_std(latent: torch.Tensor, log_std: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """gSDE's action std (reference code: SB3's StateDependentNoiseDistribution): the noise latent @ W, with
+    W_ij ~ N(0, exp(log_std_ij)^2), is Gaussian with variance sum_i latent_i^2 exp(log_std_ij)^2 for action j;
+    eps (SB3's) keeps it positive. latent (batch, hidden), log_std (hidden, action) -> (batch, action)."""
+    return torch.sqrt(latent**2 @ log_std.exp() ** 2 + eps)
+
+
+def sde_noise(latent: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
+    """gSDE's exploration noise: row n of latent (N, hidden) times matrix n of matrices (N, hidden, action)."""
+    return torch.bmm(latent.unsqueeze(1), matrices).squeeze(1)
+
+
 class Actor(nn.Module):
     """Gaussian policy of the reference code's PPO (SB3's ActorCriticPolicy): a tanh MLP of its own (no layer
-    shared with the value function) whose last hidden features feed a linear mean, and a state-independent
-    log std initialised to 0; actions are clipped to [-1, 1] in the env."""
+    shared with the value function) whose last hidden features, the latent, feed a linear mean; log std
+    initialised to 0; actions are clipped to [-1, 1] in the env. With gSDE (reference code: use_sde; full_std,
+    exp not expln, no squashing, the latent detached in the noise and the std) env n explores with
+    mean + latent @ W_n, W_n a (hidden x action) matrix with entries N(0, exp(log_std)^2), so the action is
+    N(mean, sde_std(latent, log_std)); without, the std is state-independent, one log std per action."""
 
-    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
+    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers, use_sde: bool):
         super().__init__()
         self.body = orthogonal_init(nn.Sequential(*hidden_layers(obs_dim, hidden_dim, num_layers)), math.sqrt(2))
         self.action_net = orthogonal_init(nn.Linear(hidden_dim, action_dim), 0.01)
-        self.log_std = nn.Parameter(torch.zeros(action_dim))
+        self.use_sde = use_sde
+        self.log_std = nn.Parameter(torch.zeros((hidden_dim, action_dim) if use_sde else (action_dim,)))
+        self.exploration = None  # gSDE: the matrices W_n in use, (envs, hidden, action), drawn by reset_noise
 
     def mean(self, obs):
         return self.action_net(self.body(obs))
 
-    def distribution(self, obs):
-        mean = self.mean(obs)
-        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+    def distribution(self, obs) -> tuple[torch.distributions.Normal, torch.Tensor]:
+        """pi(. | s) and the latent."""
+        latent = self.body(obs)
+        mean = self.action_net(latent)
+        if self.use_sde:
+            latent = latent.detach()
+            return torch.distributions.Normal(mean, sde_std(latent, self.log_std)), latent
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean)), latent
+
+    def reset_noise(self, num_envs: int):
+        """gSDE: a new exploration matrix for each env."""
+        with torch.no_grad():
+            self.exploration = self.log_std.exp() * torch.randn(num_envs, *self.log_std.shape, device=self.log_std.device)
+
+    def sample(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+        """An action for each row of obs (with gSDE, row n uses matrix W_n) and its log-probability."""
+        distribution, latent = self.distribution(obs)
+        action = distribution.loc + sde_noise(latent, self.exploration) if self.use_sde else distribution.sample()
+        return action, distribution.log_prob(action).sum(-1)
+
+
+def explore(actor: Actor, obs: torch.Tensor, step: int, sde_freq: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The actions (and log-probabilities) at step `step` of a rollout. gSDE draws new exploration matrices at
+    the rollout's first step and every sde_freq steps after (reference code: collect_rollouts, sde_freq 4)."""
+    if actor.use_sde and step % sde_freq == 0:
+        actor.reset_noise(len(obs))
+    return actor.sample(obs)
 
 
 def make_critic(obs_dim: int, hidden_dim: int, num_layers: int) -> nn.Sequential:
@@ -469,8 +515,8 @@ def check_args(args: Args, episode_len: int) -> str | None:
         (1 <= args.segment_len <= episode_len,
          f"--segment-len must be in [1, {episode_len}] (the episode length of {args.env_id}), got {args.segment_len}"),
         (args.unsup_steps >= 0, f"--unsup-steps must be >= 0, got {args.unsup_steps}"),
-        (min(args.num_envs, args.num_steps, args.update_epochs, args.unsup_update_epochs) >= 1,
-         "--num-envs, --num-steps, --update-epochs and --unsup-update-epochs must be >= 1"),
+        (min(args.num_envs, args.num_steps, args.update_epochs, args.unsup_update_epochs, args.sde_freq) >= 1,
+         "--num-envs, --num-steps, --update-epochs, --unsup-update-epochs and --sde-freq must be >= 1"),
         (1 <= args.minibatch_size <= rollout,
          f"--minibatch-size must be in [1, --num-envs x --num-steps = {rollout}], got {args.minibatch_size}"),
         (args.total_timesteps > args.unsup_steps and args.total_timesteps >= rollout,
@@ -739,7 +785,7 @@ if __name__ == "__main__":
     if video_env is not None:  # recorded on demand by record_video
         video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda _: False)
 
-    actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
+    actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate, eps=1e-5)
     critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
@@ -924,9 +970,7 @@ if __name__ == "__main__":
                 obs_stats.update(raw_obs)
                 obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
                 with torch.no_grad():
-                    distribution = actor.distribution(obs)
-                    action = distribution.sample()
-                    logprobs_buf[step] = distribution.log_prob(action).sum(-1)
+                    action, logprobs_buf[step] = explore(actor, obs, step, args.sde_freq)
                     values_buf[step] = critic(obs)[:, 0]
                 env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
                 env_action_np = env_action.cpu().numpy()
@@ -986,7 +1030,7 @@ if __name__ == "__main__":
                 order = torch.randperm(batch_size, device=device)
                 for start in range(0, batch_size, args.minibatch_size):
                     idx = order[start : start + args.minibatch_size]
-                    distribution = actor.distribution(b_obs[idx])
+                    distribution, _ = actor.distribution(b_obs[idx])
                     adv = b_advantages[idx]
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
                     entropy = distribution.entropy().sum(-1).mean()

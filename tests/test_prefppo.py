@@ -104,7 +104,7 @@ def assert_orthogonal(weight: torch.Tensor, gain: float):
 
 def test_networks_start_with_sb3_orthogonal_init():
     torch.manual_seed(0)
-    actor, critic = prefppo.Actor(24, 6, 64, 3), prefppo.make_critic(24, 64, 3)
+    actor, critic = prefppo.Actor(24, 6, 64, 3, use_sde=True), prefppo.make_critic(24, 64, 3)
     actor_hidden = [m for m in actor.body if isinstance(m, torch.nn.Linear)]
     critic_linear = [m for m in critic if isinstance(m, torch.nn.Linear)]
     assert len(actor_hidden) == len(critic_linear) - 1 == 3
@@ -114,7 +114,68 @@ def test_networks_start_with_sb3_orthogonal_init():
     assert_orthogonal(critic_linear[-1].weight.detach(), 1.0)  # value output: 1
     for layer in actor_hidden + critic_linear + [actor.action_net]:
         assert not layer.bias.any()
-    assert not actor.log_std.any()  # log std 0: std 1
+    assert actor.log_std.shape == (64, 6) and not actor.log_std.any()  # gSDE: one log std 0 per feature and action
+    assert prefppo.Actor(24, 6, 64, 3, use_sde=False).log_std.shape == (6,)
+
+
+def test_gsde_std_of_a_hand_built_case():
+    latent = torch.tensor([[1.0, 2.0]])
+    log_std = torch.log(torch.tensor([[1.0, 2.0], [3.0, 1.0]]))
+    # action 0: 1^2 * 1^2 + 2^2 * 3^2 = 37; action 1: 1^2 * 2^2 + 2^2 * 1^2 = 8 (+ SB3's 1e-6)
+    torch.testing.assert_close(prefppo.sde_std(latent, log_std), torch.tensor([[37 + 1e-6, 8 + 1e-6]]).sqrt())
+
+
+def test_gsde_log_prob_is_the_normal_of_the_latent_std():
+    torch.manual_seed(0)
+    actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
+    with torch.no_grad():
+        actor.log_std.copy_(torch.randn(16, 3) * 0.5)
+    obs = torch.randn(4, 5)
+    actor.reset_noise(4)
+    action, log_prob = actor.sample(obs)
+    with torch.no_grad():  # the same by hand: latent, per-sample std, a diagonal Normal
+        latent = actor.body(obs)
+        std = torch.sqrt((latent**2).unsqueeze(-1).mul(actor.log_std.exp() ** 2).sum(1) + 1e-6)  # sum over features
+        direct = torch.distributions.Normal(actor.action_net(latent), std).log_prob(action).sum(-1)
+        entropy = torch.distributions.Normal(actor.action_net(latent), std).entropy()
+    torch.testing.assert_close(log_prob, direct)
+    distribution, _ = actor.distribution(obs)  # what the PPO update evaluates
+    torch.testing.assert_close(distribution.log_prob(action).sum(-1), direct)
+    torch.testing.assert_close(distribution.entropy(), entropy)
+
+
+def test_gsde_action_is_the_mean_plus_the_latent_times_the_env_matrix():
+    torch.manual_seed(0)
+    actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
+    obs = torch.randn(4, 5)
+    actor.reset_noise(4)
+    with torch.no_grad():
+        action, _ = actor.sample(obs)
+        latent = actor.body(obs)
+        for n in range(4):
+            torch.testing.assert_close(action[n], actor.action_net(latent[n]) + latent[n] @ actor.exploration[n])
+    # the noise that the matrices give has the std that the log-probability uses (20000 draws, 3% tolerance)
+    actor.reset_noise(20_000)
+    with torch.no_grad():
+        one_state = obs[:1].expand(20_000, 5)
+        noise = actor.sample(one_state)[0] - actor.mean(one_state)
+        expected = prefppo.sde_std(actor.body(obs[:1]), actor.log_std)[0]
+    torch.testing.assert_close(noise.std(0), expected, rtol=0.03, atol=0)
+
+
+def test_gsde_noise_is_kept_for_sde_freq_steps_and_differs_between_envs():
+    torch.manual_seed(0)
+    actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
+    obs = torch.randn(1, 5).expand(2, 5)  # two envs in the same state
+    with torch.no_grad():
+        noise = torch.stack([prefppo.explore(actor, obs, step, sde_freq=4)[0] - actor.mean(obs) for step in range(8)])
+    for step in (1, 2, 3):
+        torch.testing.assert_close(noise[step], noise[0])  # steps 0-3: one matrix per env
+        torch.testing.assert_close(noise[4 + step], noise[4])  # steps 4-7: the next one
+    assert not torch.allclose(noise[4], noise[0], atol=1e-3)  # a new matrix at step 4
+    assert not torch.allclose(noise[0, 0], noise[0, 1], atol=1e-3)  # each env its own matrix
+    with torch.no_grad():  # step 0 of the next rollout draws again
+        assert not torch.allclose(prefppo.explore(actor, obs, 0, sde_freq=4)[0] - actor.mean(obs), noise[4], atol=1e-3)
 
 
 def test_value_reset_redraws_only_the_output_layer_and_keeps_the_optimizer():
@@ -208,7 +269,8 @@ def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: 
         assert session["rewards0"].shape == (n, segment_len)
         # the oracle's labels agree with the saved true rewards of the saved (raw) segments
         np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
-    # segments hold the executed (clipped) actions: the initial policy (std 1) samples outside [-1, 1] ~30% of the time
+    # segments hold the executed (clipped) actions: the initial gSDE policy (std = the latent's norm, over 1)
+    # samples outside [-1, 1] most of the time
     actions = np.abs(np.concatenate([np.concatenate([s["actions0"], s["actions1"]]).ravel() for s in labels]))
     assert actions.max() <= 1.0 and (actions == 1.0).mean() > 0.05
     assert list(out.glob("events.out.tfevents.*"))
@@ -270,6 +332,16 @@ def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     # 2 pre-training rollouts of 3 epochs, then 4 rollouts of --update-epochs 2 (TINY)
     assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1, "ppo_epochs": 14}
     assert not session_lines(result.stdout) and not saved_labels(out)
+    log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
+    assert log_std.shape == (32, 1) and log_std.any()  # gSDE by default: hidden 32 (TINY) x 1 action, trained
+
+
+def test_no_use_sde_trains_a_state_independent_std(tmp_path):
+    out = tmp_path / "no_sde"
+    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--total-timesteps", "2400", "--no-use-sde")
+    assert result.returncode == 0, result.stderr[-3000:]
+    log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
+    assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
 
 def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
