@@ -413,6 +413,35 @@ def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: i
     return torch.cat(kth)
 
 
+class KnnStateEntropy:
+    """Algorithm 2's intrinsic reward r_int(s_t): the distance from s_t to its k-th nearest neighbour among every
+    state of pre-training so far, this step's states of all envs included (reference code: a growing buffer on
+    the device, raw observations), divided by a running standard deviation of these distances."""
+
+    def __init__(self, obs_dim: int, k: int, device: torch.device):
+        self.k, self.count = k, 0
+        self.states = torch.zeros(1024, obs_dim, device=device)  # the buffer; its first `count` rows are filled
+        self.stats = RunningMeanStd(1)
+
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        """Adds this step's states (one per env) to the buffer; returns their normalised rewards."""
+        if self.count + len(states) > len(self.states):  # grow: doubling keeps the copies linear in total
+            self.states = torch.cat([self.states, self.states.new_zeros(max(len(self.states), len(states)),
+                                                                          self.states.shape[1])])
+        self.states[self.count : self.count + len(states)] = states
+        self.count += len(states)
+        distance = knn_distance(states, self.states[: self.count], self.k)[:, 0]
+        self.stats.update(distance.cpu().numpy()[:, None])
+        return distance / math.sqrt(self.stats.var[0] + 1e-8)
+
+    def state_dict(self) -> dict:
+        return {"states": self.states[: self.count].cpu(), "stats": dict(vars(self.stats))}
+
+    def load_state_dict(self, state: dict):
+        self.states, self.count = state["states"].to(self.states.device), len(state["states"])
+        vars(self.stats).update(state["stats"])
+
+
 def true_next_observations(next_obs: np.ndarray, infos: dict, done: np.ndarray) -> np.ndarray:
     """With Gymnasium's same-step autoreset, `next_obs` of an environment whose episode just ended
     is already the first observation of its next episode; the last one is in infos["final_obs"]."""
@@ -789,7 +818,7 @@ if __name__ == "__main__":
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate, eps=1e-5)
     critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
-    obs_stats, intrinsic_stats = RunningMeanStd(obs_dim), RunningMeanStd(1)
+    obs_stats, knn_reward = RunningMeanStd(obs_dim), KnnStateEntropy(obs_dim, args.knn_k, device)
 
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
@@ -876,7 +905,7 @@ if __name__ == "__main__":
     actions_buf, env_actions_buf = (torch.zeros(*rollout_shape, action_dim, device=device) for _ in range(2))
     logprobs_buf, values_buf, next_values_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
     true_rewards_buf, bootstrap_buf, dones_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
-    next_raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
+    intrinsic_buf = torch.zeros(rollout_shape, device=device)
     current = [([], [], []) for _ in range(args.num_envs)]  # the running episode of each env
     recent_returns = deque(maxlen=100)
     episode_returns = np.zeros(args.num_envs)
@@ -903,7 +932,7 @@ if __name__ == "__main__":
         atomic_torch_save({
             "progress": {name: globals()[name] for name in progress_names} | {"wall_time": time.time() - start_time},
             **{name: part.state_dict() for name, part in learner_state().items()},
-            "obs_stats": vars(obs_stats), "intrinsic_stats": vars(intrinsic_stats),
+            "obs_stats": vars(obs_stats), "knn_reward": knn_reward.state_dict(),
             "preferences": [preference_inputs0, preference_inputs1, preference_y, labelled_features],
             "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if args.cuda else None,
@@ -916,7 +945,7 @@ if __name__ == "__main__":
         for name, part in learner_state().items():
             part.load_state_dict(checkpoint[name])
         vars(obs_stats).update(checkpoint["obs_stats"])
-        vars(intrinsic_stats).update(checkpoint["intrinsic_stats"])
+        knn_reward.load_state_dict(checkpoint["knn_reward"])
         preference_inputs0, preference_inputs1, preference_y = ([t.to(device) for t in part] for part in checkpoint["preferences"][:3])
         labelled_features, teacher, rng = checkpoint["preferences"][3], checkpoint["teacher"], checkpoint["rng"]
         torch.set_rng_state(checkpoint["torch_rng"])
@@ -969,6 +998,10 @@ if __name__ == "__main__":
             for step in range(args.num_steps):
                 obs_stats.update(raw_obs)
                 obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
+                if not reward_ready:  # pre-training: r_int(s_t) of Algorithm 2
+                    knn_start = time.perf_counter()
+                    intrinsic_buf[step] = knn_reward(torch.as_tensor(raw_obs, device=device))
+                    overhead_seconds += time.perf_counter() - knn_start
                 with torch.no_grad():
                     action, logprobs_buf[step] = explore(actor, obs, step, args.sde_freq)
                     values_buf[step] = critic(obs)[:, 0]
@@ -981,7 +1014,6 @@ if __name__ == "__main__":
                 real_next = true_next_observations(next_raw_obs, infos, done)
                 raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action
                 env_actions_buf[step] = env_action
-                next_raw_obs_buf[step] = torch.as_tensor(real_next)
                 true_rewards_buf[step], dones_buf[step] = torch.as_tensor(true_reward), torch.as_tensor(done, dtype=torch.float32)
                 with torch.no_grad():  # V of the state after this step; at a truncation it bootstraps the reward
                     next_values = critic(torch.as_tensor(obs_stats.normalize(real_next), device=device))[:, 0]
@@ -1002,12 +1034,7 @@ if __name__ == "__main__":
 
             # The reward PPO maximises: kNN state entropy (pre-training), r_hat (Algorithm 3) or the true reward
             if not reward_ready:
-                knn_start = time.perf_counter()
-                flat_next = next_raw_obs_buf.reshape(-1, obs_dim)
-                intrinsic = knn_distance(flat_next, flat_next, args.knn_k)
-                intrinsic_stats.update(intrinsic.cpu().numpy())
-                rewards = (intrinsic / math.sqrt(intrinsic_stats.var[0] + 1e-8)).reshape(rollout_shape)
-                overhead_seconds += time.perf_counter() - knn_start
+                rewards = intrinsic_buf
                 counts["updates_on_knn_reward"] += 1
             elif args.ground_truth_reward:
                 rewards = true_rewards_buf.clone()

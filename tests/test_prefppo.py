@@ -233,6 +233,26 @@ def test_ppo_epochs_default_to_the_reference_runs():
     assert (args.update_epochs, args.unsup_update_epochs) == (20, 50)
 
 
+def test_knn_reward_scores_each_state_against_every_pretraining_state_so_far():
+    knn = prefppo.KnnStateEntropy(obs_dim=1, k=1, device=torch.device("cpu"))
+    first = knn(torch.tensor([[0.0], [3.0]]))  # buffer {0, 3}: each one's nearest other state is 3 away
+    assert knn.count == 2
+    second = knn(torch.tensor([[1.0], [10.0]]))  # buffer {0, 3, 1, 10}: 1 is 1 from 0, 10 is 7 from 3
+    # within this step alone 1 and 10 would be 9 apart; distances so far 3, 3, 1, 7: running var 19 / 4
+    std = math.sqrt(19 / 4)
+    np.testing.assert_allclose(second.numpy(), [1 / std, 7 / std], rtol=1e-3)
+    assert first[0] == first[1] > 0
+    # the buffer grows past its first allocation, and a checkpoint's copy goes on identically
+    many = torch.randn(700, 2, 1)
+    for states in many:
+        knn(states)
+    assert knn.count == 4 + 1400 and len(knn.states) >= 1404
+    copy = prefppo.KnnStateEntropy(obs_dim=1, k=1, device=torch.device("cpu"))
+    copy.load_state_dict(knn.state_dict())
+    step = torch.tensor([[0.5], [-0.5]])
+    torch.testing.assert_close(copy(step), knn(step), rtol=0, atol=0)
+
+
 def test_runs_with_different_seeds_share_no_environment_seed():
     run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
     seeds1, seeds2 = set(run1["envs"]) | {run1["eval"], run1["video"]}, set(run2["envs"]) | {run2["eval"], run2["video"]}
