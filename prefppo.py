@@ -138,17 +138,18 @@ class Args:
     """soft labels (1 - s) * y + s / 2 (appendix uses s = 0.1 as a regulariser)"""
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
-    query_recent_episodes: int = 100
-    """segments are drawn from the last N complete episodes"""
+    query_recent_episodes: int = 0
+    """segments are drawn from the last N complete episodes (0 = every episode so far, pre-training included:
+    reference code)"""
 
 
 # Paper appendix, table of PrefPPO hyperparameters (README lists the values the paper leaves open).
 DMC_PRESET = dict(total_timesteps=4_000_000, max_feedback=1000, feedback_per_session=100, feedback_every=32_000,
                   segment_len=50, learning_rate=5e-5, num_envs=32, num_steps=500, minibatch_size=64, gae_lambda=0.92,
-                  reward_epochs=50)
+                  reward_epochs=100)  # reference code: re_update 100 (train_PrefPPO.py default, DMC scripts)
 METAWORLD_PRESET = dict(total_timesteps=3_000_000, max_feedback=10_000, feedback_per_session=100, feedback_every=16_000,
                         segment_len=25, learning_rate=3e-4, num_envs=8, num_steps=250, minibatch_size=128,
-                        gae_lambda=0.92, reward_epochs=10)
+                        gae_lambda=0.92, reward_epochs=50)  # reference code: --re-update 50 (Meta-World scripts)
 GYM_PRESET = dict(DMC_PRESET, learning_rate=3e-4, num_envs=8, num_steps=256, minibatch_size=64, gae_lambda=0.95)
 PRESETS = {
     "walker-walk": DMC_PRESET,
@@ -442,6 +443,13 @@ class KnnStateEntropy:
         vars(self.stats).update(state["stats"])
 
 
+def annotation_buffer(recent_episodes: int) -> deque:
+    """The complete episodes that segments are drawn from, in raw observations (obs, actions, true rewards): the
+    last `recent_episodes`, or every one with 0 (reference code: add_data_batch never trims; 4M walker steps hold
+    4M x (24 + 6 + 1) float32 = 0.5 GB, quadruped's 4M x 91 = 1.5 GB, Meta-World's 3M x 44 = 0.5 GB)."""
+    return deque(maxlen=recent_episodes or None)
+
+
 def true_next_observations(next_obs: np.ndarray, infos: dict, done: np.ndarray) -> np.ndarray:
     """With Gymnasium's same-step autoreset, `next_obs` of an environment whose episode just ended
     is already the first observation of its next episode; the last one is in infos["final_obs"]."""
@@ -559,7 +567,7 @@ def check_args(args: Args, episode_len: int) -> str | None:
         (args.clip_coef > 0 and args.ent_coef >= 0 and args.vf_coef >= 0 and args.max_grad_norm > 0,
          "--clip-coef and --max-grad-norm must be > 0, --ent-coef and --vf-coef >= 0"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
-        (args.query_recent_episodes >= 1, f"--query-recent-episodes must be >= 1, got {args.query_recent_episodes}"),
+        (args.query_recent_episodes >= 0, f"--query-recent-episodes must be >= 0, got {args.query_recent_episodes}"),
         (args.checkpoint_every >= 0, f"--checkpoint-every must be >= 0, got {args.checkpoint_every}"),
         (not args.cuda or torch.cuda.is_available(), "--cuda was given but torch sees no GPU"),
     ]
@@ -834,8 +842,7 @@ if __name__ == "__main__":
         preference_y.append(torch.as_tensor(imported_labels["y"], device=device))
         labelled_features.append(imported_labels["features"])
         print(f"--labels-from: {len(imported_labels['y'])} labels from {args.labels_from}")
-    # Annotation buffer: the last complete episodes in raw observations (obs, actions, true rewards)
-    episodes = deque(maxlen=args.query_recent_episodes)
+    episodes = annotation_buffer(args.query_recent_episodes)
 
     def feedback_session(size: int, first: bool) -> int:
         """Algorithm 3, reward learning: SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat."""

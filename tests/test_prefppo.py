@@ -253,6 +253,22 @@ def test_knn_reward_scores_each_state_against_every_pretraining_state_so_far():
     torch.testing.assert_close(copy(step), knn(step), rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("env_id, epochs", [("walker-walk", 100), ("quadruped-walk", 100), ("cheetah-run", 100),
+                                            ("button-press", 50), ("sweep-into", 50), ("Pendulum-v1", 100)])
+def test_reward_model_epochs_follow_the_reference_runs(env_id, epochs):
+    assert prefppo.resolve(prefppo.Args(env_id=env_id)).reward_epochs == epochs
+
+
+def test_query_pool_keeps_every_episode_by_default():
+    assert prefppo.Args().query_recent_episodes == 0
+    everything, recent = prefppo.annotation_buffer(0), prefppo.annotation_buffer(100)
+    for episode in range(4000):  # walker's 4M steps
+        everything.append(episode)
+        recent.append(episode)
+    assert len(everything) == 4000 and everything[0] == 0  # pre-training's episodes included
+    assert list(recent) == list(range(3900, 4000))
+
+
 def test_runs_with_different_seeds_share_no_environment_seed():
     run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
     seeds1, seeds2 = set(run1["envs"]) | {run1["eval"], run1["video"]}, set(run2["envs"]) | {run2["eval"], run2["video"]}
@@ -385,6 +401,7 @@ BAD_INPUTS = [
     (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
     (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
     (["--seed", "-1"], "--seed must be >= 0, got -1"),
+    (["--query-recent-episodes", "-1"], "--query-recent-episodes must be >= 0, got -1"),
 ]
 
 
