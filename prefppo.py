@@ -932,10 +932,11 @@ if __name__ == "__main__":
         return {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
                 "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
 
-    def save_checkpoint():
-        """Everything the run needs to go on exactly, after a rollout: networks, optimizers, normalisers,
-        preferences, annotation episodes, teacher, random generators, environments, counters and logs."""
-        save_start, path = time.perf_counter(), os.path.join(output_dir, "checkpoint.pt")
+    def save_checkpoint(name: str = "checkpoint.pt"):
+        """Everything the run needs to go on exactly, after a rollout: networks, optimizers, normalisers, kNN
+        buffer, preferences, annotation episodes, teacher, random generators, environments, counters and logs.
+        gSDE's exploration matrices are not saved: every rollout draws new ones at its first step."""
+        save_start, path = time.perf_counter(), os.path.join(output_dir, name)
         atomic_torch_save({
             "progress": {name: globals()[name] for name in progress_names} | {"wall_time": time.time() - start_time},
             **{name: part.state_dict() for name, part in learner_state().items()},
@@ -945,7 +946,7 @@ if __name__ == "__main__":
             "cuda_rng": torch.cuda.get_rng_state_all() if args.cuda else None,
             "envs": [env_state(e) for e in envs.envs], "eval_env": env_state(eval_env),
         }, path)
-        print(f"step {global_step}: checkpoint saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
+        print(f"step {global_step}: {name} saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
               f"{time.perf_counter() - save_start:.1f} s)", flush=True)
 
     if checkpoint:  # --resume: put every saved part back
@@ -1117,9 +1118,15 @@ if __name__ == "__main__":
                       f"continue with --resume {output_dir}", flush=True)
                 sys.exit(128 + stop_signal)
     except NonFiniteError as error:
-        save_checkpoint()  # the check comes before the optimizer step, so the saved state is finite
-        fail(f"{error} at step {global_step}; run stopped, its last finite state is in {output_dir}/checkpoint.pt "
-             f"and its labels in {output_dir}/labels", code=3)
+        # Mid-rollout or mid-update the envs have moved past the last checkpoint, which stays as it is. The state
+        # at the failure (finite: the checks come before the optimizer steps) goes to a file of its own, to
+        # inspect, not to resume from
+        save_checkpoint("checkpoint_nonfinite.pt")
+        last = os.path.join(output_dir, "checkpoint.pt")
+        fail(f"{error} at step {global_step}; run stopped, "
+             f"{'its last checkpoint is intact in ' + last if os.path.exists(last) else 'no checkpoint was due yet'}, "
+             f"the state at the failure is in {output_dir}/checkpoint_nonfinite.pt and the labels in "
+             f"{output_dir}/labels", code=3)
     except OSError as error:
         fail(f"writing to {output_dir!r} failed at step {global_step} ({error.strerror or error}); "
              "the last checkpoint there is intact", code=1)
