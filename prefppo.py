@@ -524,12 +524,17 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
 
 
 def resolve(args: Args) -> Args:
-    """Fill every field left None from the task's preset; a flag the user gave wins."""
+    """Fill every field left None from the task's preset and the teacher's; a flag the user gave wins."""
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
     for key, value in preset.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
+    if args.teacher in TEACHERS:  # every field of the teacher the run uses, so that config.json records it
+        teacher = make_teacher(args.teacher)
+        for name in ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal"):
+            if getattr(args, f"teacher_{name}") is None:
+                setattr(args, f"teacher_{name}", getattr(teacher, name))
     return args
 
 

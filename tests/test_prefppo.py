@@ -259,6 +259,13 @@ def test_reward_model_epochs_follow_the_reference_runs(env_id, epochs):
     assert prefppo.resolve(prefppo.Args(env_id=env_id)).reward_epochs == epochs
 
 
+def test_the_resolved_configuration_names_every_teacher_field():
+    myopic = prefppo.resolve(prefppo.Args(teacher="myopic", teacher_eps_mistake=0.2))
+    assert (myopic.teacher_beta, myopic.teacher_gamma, myopic.teacher_eps_mistake, myopic.teacher_eps_skip,
+            myopic.teacher_eps_equal) == (math.inf, 0.9, 0.2, 0.0, 0.0)  # the preset's gamma, the flag's eps_mistake
+    assert prefppo.resolve(prefppo.Args(teacher="stoc")).teacher_beta == 1.0
+
+
 def test_query_pool_keeps_every_episode_by_default():
     assert prefppo.Args().query_recent_episodes == 0
     everything, recent = prefppo.annotation_buffer(0), prefppo.annotation_buffer(100)
@@ -323,6 +330,7 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
     assert [int(r["step"]) for r in rows] == [3000, 5000]
     config = json.loads((out / "config.json").read_text())
     assert config["gae_lambda"] == 0.92 and config["learning_rate"] == 5e-5  # walker-walk preset
+    assert config["teacher_gamma"] == 1.0 and config["teacher_beta"] == math.inf  # the oracle, written out
 
 
 def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
