@@ -321,7 +321,8 @@ class Actor(nn.Module):
     def reset_noise(self, num_envs: int):
         """gSDE: a new exploration matrix for each env."""
         with torch.no_grad():
-            self.exploration = self.log_std.exp() * torch.randn(num_envs, *self.log_std.shape, device=self.log_std.device)
+            noise = torch.randn(num_envs, *self.log_std.shape, device=self.log_std.device)
+            self.exploration = self.log_std.exp() * noise
 
     def sample(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
         """An action for each row of obs (with gSDE, row n uses matrix W_n) and its log-probability."""
@@ -937,11 +938,11 @@ if __name__ == "__main__":
         return {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
                 "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
 
-    def save_checkpoint(name: str = "checkpoint.pt"):
+    def save_checkpoint(filename: str = "checkpoint.pt"):
         """Everything the run needs to go on exactly, after a rollout: networks, optimizers, normalisers, kNN
         buffer, preferences, annotation episodes, teacher, random generators, environments, counters and logs.
         gSDE's exploration matrices are not saved: every rollout draws new ones at its first step."""
-        save_start, path = time.perf_counter(), os.path.join(output_dir, name)
+        save_start, path = time.perf_counter(), os.path.join(output_dir, filename)
         atomic_torch_save({
             "progress": {name: globals()[name] for name in progress_names} | {"wall_time": time.time() - start_time},
             **{name: part.state_dict() for name, part in learner_state().items()},
@@ -951,7 +952,7 @@ if __name__ == "__main__":
             "cuda_rng": torch.cuda.get_rng_state_all() if args.cuda else None,
             "envs": [env_state(e) for e in envs.envs], "eval_env": env_state(eval_env),
         }, path)
-        print(f"step {global_step}: {name} saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
+        print(f"step {global_step}: {filename} saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
               f"{time.perf_counter() - save_start:.1f} s)", flush=True)
 
     if checkpoint:  # --resume: put every saved part back

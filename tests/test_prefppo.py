@@ -211,7 +211,7 @@ def test_ppo_loss_weighs_the_value_mse_by_vf_coef_once():
     advantages = torch.tensor([1.0, -1.0])
     values, returns = torch.tensor([1.0, 3.0]), torch.tensor([2.0, 1.0])
     loss, policy_loss, value_loss, ratio = prefppo.ppo_loss(log_prob, torch.zeros(2), advantages, values, returns,
-                                                            entropy=torch.tensor(0.7), clip=0.2, vf_coef=0.5, ent_coef=0.1)
+                                                            torch.tensor(0.7), clip=0.2, vf_coef=0.5, ent_coef=0.1)
     torch.testing.assert_close(ratio, torch.tensor([1.5, 0.5]))
     # sample 0: max(-1.5, -1.2) = -1.2 (clipped at 1.2); sample 1: max(0.5, 0.8) = 0.8 (clipped at 0.8)
     assert policy_loss.item() == pytest.approx((-1.2 + 0.8) / 2)
@@ -278,7 +278,8 @@ def test_query_pool_keeps_every_episode_by_default():
 
 def test_runs_with_different_seeds_share_no_environment_seed():
     run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
-    seeds1, seeds2 = set(run1["envs"]) | {run1["eval"], run1["video"]}, set(run2["envs"]) | {run2["eval"], run2["video"]}
+    seeds1 = set(run1["envs"]) | {run1["eval"], run1["video"]}
+    seeds2 = set(run2["envs"]) | {run2["eval"], run2["video"]}
     assert len(seeds1) == len(seeds2) == 34  # 32 training envs, evaluation and video: all different in a run
     assert not seeds1 & seeds2  # env i used to get seed + i: runs 1 and 2 shared 31 of 32
     assert prefppo.run_seeds(1, 32)["envs"] == run1["envs"]  # a run's seeds are reproducible
