@@ -1014,7 +1014,7 @@ if __name__ == "__main__":
                 obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
                 if not reward_ready:  # pre-training: r_int(s_t) of Algorithm 2
                     knn_start = time.perf_counter()
-                    intrinsic_buf[step] = knn_reward(torch.as_tensor(raw_obs, device=device))
+                    intrinsic_buf[step] = knn_reward(torch.as_tensor(raw_obs, dtype=torch.float32, device=device))
                     overhead_seconds += time.perf_counter() - knn_start
                 with torch.no_grad():
                     action, logprobs_buf[step] = explore(actor, obs, step, args.sde_freq)
