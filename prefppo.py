@@ -95,16 +95,23 @@ class Args:
     """parallel environments"""
     num_steps: int | None = None
     """rollout length per environment"""
-    update_epochs: int = 10
-    """PPO epochs over each rollout"""
+    update_epochs: int = 20
+    """PPO epochs over each rollout after pre-training (reference code: n_epochs 20)"""
+    unsup_update_epochs: int = 50
+    """PPO epochs over each rollout of unsupervised pre-training (reference code: unsuper_n_epochs 50)"""
     minibatch_size: int | None = None
     """PPO minibatch size"""
     gamma: float = 0.99
     """discount"""
     gae_lambda: float | None = None
     """GAE lambda"""
+    use_sde: bool = True
+    """generalized state-dependent exploration, gSDE (reference code: use_sde 1); --no-use-sde: a
+    state-independent Gaussian"""
+    sde_freq: int = 4
+    """gSDE: steps of each env between new exploration matrices (reference code: sde_freq 4)"""
     clip_coef: float = 0.4
-    """PPO clip range (paper: 0.4)"""
+    """initial PPO clip range (paper: 0.4), decayed linearly to 0 over training (reference code)"""
     ent_coef: float = 0.0
     """entropy bonus (paper: 0)"""
     vf_coef: float = 0.5
@@ -131,17 +138,18 @@ class Args:
     """soft labels (1 - s) * y + s / 2 (appendix uses s = 0.1 as a regulariser)"""
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
-    query_recent_episodes: int = 100
-    """segments are drawn from the last N complete episodes"""
+    query_recent_episodes: int = 0
+    """segments are drawn from the last N complete episodes (0 = every episode so far, pre-training included:
+    reference code)"""
 
 
 # Paper appendix, table of PrefPPO hyperparameters (README lists the values the paper leaves open).
 DMC_PRESET = dict(total_timesteps=4_000_000, max_feedback=1000, feedback_per_session=100, feedback_every=32_000,
                   segment_len=50, learning_rate=5e-5, num_envs=32, num_steps=500, minibatch_size=64, gae_lambda=0.92,
-                  reward_epochs=50)
+                  reward_epochs=100)  # reference code: re_update 100 (train_PrefPPO.py default, DMC scripts)
 METAWORLD_PRESET = dict(total_timesteps=3_000_000, max_feedback=10_000, feedback_per_session=100, feedback_every=16_000,
                         segment_len=25, learning_rate=3e-4, num_envs=8, num_steps=250, minibatch_size=128,
-                        gae_lambda=0.92, reward_epochs=10)
+                        gae_lambda=0.92, reward_epochs=50)  # reference code: --re-update 50 (Meta-World scripts)
 GYM_PRESET = dict(DMC_PRESET, learning_rate=3e-4, num_envs=8, num_steps=256, minibatch_size=64, gae_lambda=0.95)
 PRESETS = {
     "walker-walk": DMC_PRESET,
@@ -236,24 +244,129 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
     return env, episode_len
 
 
-def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> nn.Sequential:
+def run_seeds(seed: int, num_envs: int) -> dict:
+    """Independent random streams from the run's seed (numpy SeedSequence.spawn): a seed for each training
+    env, one for the evaluation env and one for the video env, the query sampler's generator and the
+    teacher's seed. Env seeds are 32-bit draws, so runs with different seeds share none (up to a chance
+    of about num_envs^2 / 2^32); with env i seeded seed + i, runs s and s + 1 shared all but one."""
+    envs, evaluation, video, sampler, teacher = np.random.SeedSequence(seed).spawn(5)
+    return {"envs": [int(s) for s in envs.generate_state(num_envs)], "eval": int(evaluation.generate_state(1)[0]),
+            "video": int(video.generate_state(1)[0]), "sampler": np.random.default_rng(sampler),
+            "teacher": int(teacher.generate_state(1)[0])}
+
+
+def hidden_layers(in_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> list[nn.Module]:
     layers, dim = [], in_dim
     for _ in range(num_layers):
         layers += [nn.Linear(dim, hidden_dim), activation()]
         dim = hidden_dim
-    return nn.Sequential(*layers, nn.Linear(dim, out_dim))
+    return layers
+
+
+def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> nn.Sequential:
+    return nn.Sequential(*hidden_layers(in_dim, hidden_dim, num_layers, activation),
+                         nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
+
+
+def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
+    """Orthogonal weights with this gain and zero biases for every linear layer of `module` (reference code:
+    SB3's ActorCriticPolicy init, gain sqrt(2) for hidden layers, 0.01 for the policy output, 1 for the value)."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight, gain)
+            nn.init.zeros_(layer.bias)
+    return module
+
+
+def sde_std(latent: torch.Tensor, log_std: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """gSDE's action std (reference code: SB3's StateDependentNoiseDistribution): the noise latent @ W, with
+    W_ij ~ N(0, exp(log_std_ij)^2), is Gaussian with variance sum_i latent_i^2 exp(log_std_ij)^2 for action j;
+    eps (SB3's) keeps it positive. latent (batch, hidden), log_std (hidden, action) -> (batch, action)."""
+    return torch.sqrt(latent**2 @ log_std.exp() ** 2 + eps)
+
+
+def sde_noise(latent: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
+    """gSDE's exploration noise: row n of latent (N, hidden) times matrix n of matrices (N, hidden, action)."""
+    return torch.bmm(latent.unsqueeze(1), matrices).squeeze(1)
 
 
 class Actor(nn.Module):
-    """Gaussian policy with a state-independent log std; actions are clipped to [-1, 1] in the env."""
+    """Gaussian policy of the reference code's PPO (SB3's ActorCriticPolicy): a tanh MLP of its own (no layer
+    shared with the value function) whose last hidden features, the latent, feed a linear mean; log std
+    initialised to 0; actions are clipped to [-1, 1] in the env. With gSDE (reference code: use_sde; full_std,
+    exp not expln, no squashing, the latent detached in the noise and the std) env n explores with
+    mean + latent @ W_n, W_n a (hidden x action) matrix with entries N(0, exp(log_std)^2), so the action is
+    N(mean, sde_std(latent, log_std)); without, the std is state-independent, one log std per action."""
 
-    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
+    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers, use_sde: bool):
         super().__init__()
-        self.mean = mlp(obs_dim, action_dim, hidden_dim, num_layers)
-        self.log_std = nn.Parameter(torch.zeros(action_dim))
+        self.body = orthogonal_init(nn.Sequential(*hidden_layers(obs_dim, hidden_dim, num_layers)), math.sqrt(2))
+        self.action_net = orthogonal_init(nn.Linear(hidden_dim, action_dim), 0.01)
+        self.use_sde = use_sde
+        self.log_std = nn.Parameter(torch.zeros((hidden_dim, action_dim) if use_sde else (action_dim,)))
+        self.exploration = None  # gSDE: the matrices W_n in use, (envs, hidden, action), drawn by reset_noise
 
-    def distribution(self, obs):
-        return torch.distributions.Normal(self.mean(obs), self.log_std.exp())
+    def mean(self, obs):
+        return self.action_net(self.body(obs))
+
+    def distribution(self, obs) -> tuple[torch.distributions.Normal, torch.Tensor]:
+        """pi(. | s) and the latent."""
+        latent = self.body(obs)
+        mean = self.action_net(latent)
+        if self.use_sde:
+            latent = latent.detach()
+            return torch.distributions.Normal(mean, sde_std(latent, self.log_std)), latent
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean)), latent
+
+    def reset_noise(self, num_envs: int):
+        """gSDE: a new exploration matrix for each env."""
+        with torch.no_grad():
+            noise = torch.randn(num_envs, *self.log_std.shape, device=self.log_std.device)
+            self.exploration = self.log_std.exp() * noise
+
+    def sample(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
+        """An action for each row of obs (with gSDE, row n uses matrix W_n) and its log-probability."""
+        distribution, latent = self.distribution(obs)
+        action = distribution.loc + sde_noise(latent, self.exploration) if self.use_sde else distribution.sample()
+        return action, distribution.log_prob(action).sum(-1)
+
+
+def explore(actor: Actor, obs: torch.Tensor, step: int, sde_freq: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The actions (and log-probabilities) at step `step` of a rollout. gSDE draws new exploration matrices at
+    the rollout's first step and every sde_freq steps after (reference code: collect_rollouts, sde_freq 4)."""
+    if actor.use_sde and step % sde_freq == 0:
+        actor.reset_noise(len(obs))
+    return actor.sample(obs)
+
+
+def make_critic(obs_dim: int, hidden_dim: int, num_layers: int) -> nn.Sequential:
+    """V(s): a tanh MLP of its own (reference code: separate pi and vf layers), SB3's init."""
+    critic = orthogonal_init(mlp(obs_dim, 1, hidden_dim, num_layers), math.sqrt(2))
+    orthogonal_init(critic[-1], 1.0)
+    return critic
+
+
+def reset_value_head(critic: nn.Sequential):
+    """The value reset after the first reward update (reference code: reset_value): only the output layer is
+    drawn again; the hidden layers, and the optimizer with its moments, are kept."""
+    orthogonal_init(critic[-1], 1.0)
+
+
+def clip_range(clip_coef: float, global_step: int, total_timesteps: int) -> float:
+    """The clip range of the update after the rollout that reached global_step (reference code: linear_schedule
+    of SB3's progress_remaining = 1 - steps done / total steps): clip_coef at the start, 0 at the end."""
+    return clip_coef * max(0.0, 1.0 - global_step / total_timesteps)
+
+
+def ppo_loss(log_prob, old_log_prob, advantages, values, returns, entropy, clip: float, vf_coef: float,
+             ent_coef: float):
+    """Appendix Eqs. (4)-(5) as the reference code's PPO: the clipped surrogate on the (minibatch-normalised)
+    advantages, plus vf_coef x the MSE of V against the GAE returns (no value clipping), minus ent_coef x the
+    mean entropy. Returns (loss, policy_loss, value_loss, ratio)."""
+    ratio = (log_prob - old_log_prob).exp()
+    policy_loss = torch.max(-advantages * ratio, -advantages * ratio.clamp(1 - clip, 1 + clip)).mean()
+    value_loss = F.mse_loss(values, returns)
+    return policy_loss + vf_coef * value_loss - ent_coef * entropy, policy_loss, value_loss, ratio
 
 
 class RewardEnsemble(nn.Module):
@@ -300,6 +413,42 @@ def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: i
             nearest = candidates.topk(min(k + 1, candidates.shape[1]), dim=1, largest=False).values
         kth.append(nearest[:, -1:])
     return torch.cat(kth)
+
+
+class KnnStateEntropy:
+    """Algorithm 2's intrinsic reward r_int(s_t): the distance from s_t to its k-th nearest neighbour among every
+    state of pre-training so far, this step's states of all envs included (reference code: a growing buffer on
+    the device, raw observations), divided by a running standard deviation of these distances."""
+
+    def __init__(self, obs_dim: int, k: int, device: torch.device):
+        self.k, self.count = k, 0
+        self.states = torch.zeros(1024, obs_dim, device=device)  # the buffer; its first `count` rows are filled
+        self.stats = RunningMeanStd(1)
+
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        """Adds this step's states (one per env) to the buffer; returns their normalised rewards."""
+        if self.count + len(states) > len(self.states):  # grow: doubling keeps the copies linear in total
+            self.states = torch.cat([self.states, self.states.new_zeros(max(len(self.states), len(states)),
+                                                                          self.states.shape[1])])
+        self.states[self.count : self.count + len(states)] = states
+        self.count += len(states)
+        distance = knn_distance(states, self.states[: self.count], self.k)[:, 0]
+        self.stats.update(distance.cpu().numpy()[:, None])
+        return distance / math.sqrt(self.stats.var[0] + 1e-8)
+
+    def state_dict(self) -> dict:
+        return {"states": self.states[: self.count].cpu(), "stats": dict(vars(self.stats))}
+
+    def load_state_dict(self, state: dict):
+        self.states, self.count = state["states"].to(self.states.device), len(state["states"])
+        vars(self.stats).update(state["stats"])
+
+
+def annotation_buffer(recent_episodes: int) -> deque:
+    """The complete episodes that segments are drawn from, in raw observations (obs, actions, true rewards): the
+    last `recent_episodes`, or every one with 0 (reference code: add_data_batch never trims; 4M walker steps hold
+    4M x (24 + 6 + 1) float32 = 0.5 GB, quadruped's 4M x 91 = 1.5 GB, Meta-World's 3M x 44 = 0.5 GB)."""
+    return deque(maxlen=recent_episodes or None)
 
 
 def true_next_observations(next_obs: np.ndarray, infos: dict, done: np.ndarray) -> np.ndarray:
@@ -376,12 +525,17 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
 
 
 def resolve(args: Args) -> Args:
-    """Fill every field left None from the task's preset; a flag the user gave wins."""
+    """Fill every field left None from the task's preset and the teacher's; a flag the user gave wins."""
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
     for key, value in preset.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
+    if args.teacher in TEACHERS:  # every field of the teacher the run uses, so that config.json records it
+        teacher = make_teacher(args.teacher)
+        for name in ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal"):
+            if getattr(args, f"teacher_{name}") is None:
+                setattr(args, f"teacher_{name}", getattr(teacher, name))
     return args
 
 
@@ -404,7 +558,8 @@ def check_args(args: Args, episode_len: int) -> str | None:
         (1 <= args.segment_len <= episode_len,
          f"--segment-len must be in [1, {episode_len}] (the episode length of {args.env_id}), got {args.segment_len}"),
         (args.unsup_steps >= 0, f"--unsup-steps must be >= 0, got {args.unsup_steps}"),
-        (min(args.num_envs, args.num_steps, args.update_epochs) >= 1, "--num-envs, --num-steps and --update-epochs must be >= 1"),
+        (min(args.num_envs, args.num_steps, args.update_epochs, args.unsup_update_epochs, args.sde_freq) >= 1,
+         "--num-envs, --num-steps, --update-epochs, --unsup-update-epochs and --sde-freq must be >= 1"),
         (1 <= args.minibatch_size <= rollout,
          f"--minibatch-size must be in [1, --num-envs x --num-steps = {rollout}], got {args.minibatch_size}"),
         (args.total_timesteps > args.unsup_steps and args.total_timesteps >= rollout,
@@ -418,7 +573,7 @@ def check_args(args: Args, episode_len: int) -> str | None:
         (args.clip_coef > 0 and args.ent_coef >= 0 and args.vf_coef >= 0 and args.max_grad_norm > 0,
          "--clip-coef and --max-grad-norm must be > 0, --ent-coef and --vf-coef >= 0"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
-        (args.query_recent_episodes >= 1, f"--query-recent-episodes must be >= 1, got {args.query_recent_episodes}"),
+        (args.query_recent_episodes >= 0, f"--query-recent-episodes must be >= 0, got {args.query_recent_episodes}"),
         (args.checkpoint_every >= 0, f"--checkpoint-every must be >= 0, got {args.checkpoint_every}"),
         (not args.cuda or torch.cuda.is_available(), "--cuda was given but torch sees no GPU"),
     ]
@@ -600,6 +755,8 @@ if __name__ == "__main__":
     args = tyro.cli(Args)
     try:
         args = resumed_args(args) if args.resume else resolve(args)
+        if args.seed < 0:  # before make_env: the env seeds are derived from it
+            raise ValueError(f"--seed must be >= 0, got {args.seed}")
         env, episode_len = make_env(args.env_id, args.seed)
         problem = check_args(args, episode_len)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
@@ -609,6 +766,7 @@ if __name__ == "__main__":
         fail(str(error))
     if problem:
         fail(problem)
+    seeds = run_seeds(args.seed, args.num_envs)
     try:
         env_state(env)
     except Exception as error:  # an env that cannot be pickled cannot be checkpointed
@@ -620,7 +778,7 @@ if __name__ == "__main__":
             import moviepy  # noqa: F401
 
             with warnings.catch_warnings(action="ignore"):  # GLFW warns before it fails without a display
-                video_env, _ = make_env(args.env_id, args.seed + 20_000, render_mode="rgb_array")
+                video_env, _ = make_env(args.env_id, seeds["video"], render_mode="rgb_array")
                 video_env.reset()
                 video_env.render()
         except Exception as error:
@@ -654,8 +812,8 @@ if __name__ == "__main__":
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
-    # Seeding: numpy (pairs, teacher via its own seed), torch (networks, actions), environments
-    rng = np.random.default_rng(args.seed)
+    # Seeding: numpy (query sampler; the teacher has its own stream), torch (networks, actions), environments
+    rng = seeds["sampler"]
     torch.manual_seed(args.seed)
     # MuJoCo's float64 states cast to float32 give denormal numbers (tiny velocities), which make
     # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
@@ -663,22 +821,22 @@ if __name__ == "__main__":
     torch.backends.cudnn.deterministic = args.torch_deterministic
     device = torch.device("cuda" if args.cuda else "cpu")
     envs = gym.vector.SyncVectorEnv(
-        [lambda i=i: make_env(args.env_id, args.seed + i)[0] for i in range(args.num_envs)],
+        [lambda i=i: make_env(args.env_id, seeds["envs"][i])[0] for i in range(args.num_envs)],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
-    eval_env, _ = make_env(args.env_id, args.seed + 10_000)
+    eval_env, _ = make_env(args.env_id, seeds["eval"])
     if video_env is not None:  # recorded on demand by record_video
         video_env = gym.wrappers.RecordVideo(video_env, os.path.join(output_dir, "videos"), episode_trigger=lambda _: False)
 
-    actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
-    critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
+    actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
+    critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate, eps=1e-5)
     critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
-    obs_stats, intrinsic_stats = RunningMeanStd(obs_dim), RunningMeanStd(1)
+    obs_stats, knn_reward = RunningMeanStd(obs_dim), KnnStateEntropy(obs_dim, args.knn_k, device)
 
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    teacher = make_teacher(args.teacher, seed=args.seed, **{k: v for k, v in {
+    teacher = make_teacher(args.teacher, seed=seeds["teacher"], **{k: v for k, v in {
         "beta": args.teacher_beta, "gamma": args.teacher_gamma, "eps_mistake": args.teacher_eps_mistake,
         "eps_skip": args.teacher_eps_skip, "eps_equal": args.teacher_eps_equal}.items() if v is not None})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
@@ -690,8 +848,7 @@ if __name__ == "__main__":
         preference_y.append(torch.as_tensor(imported_labels["y"], device=device))
         labelled_features.append(imported_labels["features"])
         print(f"--labels-from: {len(imported_labels['y'])} labels from {args.labels_from}")
-    # Annotation buffer: the last complete episodes in raw observations (obs, actions, true rewards)
-    episodes = deque(maxlen=args.query_recent_episodes)
+    episodes = annotation_buffer(args.query_recent_episodes)
 
     def feedback_session(size: int, first: bool) -> int:
         """Algorithm 3, reward learning: SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat."""
@@ -753,7 +910,7 @@ if __name__ == "__main__":
     eval_path = os.path.join(output_dir, "eval.csv")
     eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
                    "wall_time", "overhead_seconds"]
-    counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, value_resets=0)
+    counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, value_resets=0, ppo_epochs=0)
     overhead_seconds = 0.0  # time in the preference-learning parts: kNN reward, queries, reward learning
     rollout_shape = (args.num_steps, args.num_envs)
     raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
@@ -761,11 +918,11 @@ if __name__ == "__main__":
     actions_buf, env_actions_buf = (torch.zeros(*rollout_shape, action_dim, device=device) for _ in range(2))
     logprobs_buf, values_buf, next_values_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
     true_rewards_buf, bootstrap_buf, dones_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
-    next_raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
+    intrinsic_buf = torch.zeros(rollout_shape, device=device)
     current = [([], [], []) for _ in range(args.num_envs)]  # the running episode of each env
     recent_returns = deque(maxlen=100)
     episode_returns = np.zeros(args.num_envs)
-    raw_obs, _ = envs.reset(seed=args.seed)
+    raw_obs, _ = envs.reset(seed=seeds["envs"])  # each env's own seed again, as make_env reset it
     next_feedback_step = args.unsup_steps
     next_eval_step, last_eval = args.eval_every, float("nan")
     reward_ready = False  # PPO trains on r_hat (or the true reward) instead of the kNN reward
@@ -777,31 +934,32 @@ if __name__ == "__main__":
                       "feedback_used", "sessions_done", "counts", "overhead_seconds", "eval_log"]
 
     def learner_state() -> dict:
-        """Every network and optimizer by name (the value reset replaces the critic and its optimizer)."""
+        """Every network and optimizer by name."""
         return {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
                 "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
 
-    def save_checkpoint():
-        """Everything the run needs to go on exactly, after a rollout: networks, optimizers, normalisers,
-        preferences, annotation episodes, teacher, random generators, environments, counters and logs."""
-        save_start, path = time.perf_counter(), os.path.join(output_dir, "checkpoint.pt")
+    def save_checkpoint(filename: str = "checkpoint.pt"):
+        """Everything the run needs to go on exactly, after a rollout: networks, optimizers, normalisers, kNN
+        buffer, preferences, annotation episodes, teacher, random generators, environments, counters and logs.
+        gSDE's exploration matrices are not saved: every rollout draws new ones at its first step."""
+        save_start, path = time.perf_counter(), os.path.join(output_dir, filename)
         atomic_torch_save({
             "progress": {name: globals()[name] for name in progress_names} | {"wall_time": time.time() - start_time},
             **{name: part.state_dict() for name, part in learner_state().items()},
-            "obs_stats": vars(obs_stats), "intrinsic_stats": vars(intrinsic_stats),
+            "obs_stats": vars(obs_stats), "knn_reward": knn_reward.state_dict(),
             "preferences": [preference_inputs0, preference_inputs1, preference_y, labelled_features],
             "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if args.cuda else None,
             "envs": [env_state(e) for e in envs.envs], "eval_env": env_state(eval_env),
         }, path)
-        print(f"step {global_step}: checkpoint saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
+        print(f"step {global_step}: {filename} saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
               f"{time.perf_counter() - save_start:.1f} s)", flush=True)
 
     if checkpoint:  # --resume: put every saved part back
         for name, part in learner_state().items():
             part.load_state_dict(checkpoint[name])
         vars(obs_stats).update(checkpoint["obs_stats"])
-        vars(intrinsic_stats).update(checkpoint["intrinsic_stats"])
+        knn_reward.load_state_dict(checkpoint["knn_reward"])
         preference_inputs0, preference_inputs1, preference_y = ([t.to(device) for t in part] for part in checkpoint["preferences"][:3])
         labelled_features, teacher, rng = checkpoint["preferences"][3], checkpoint["teacher"], checkpoint["rng"]
         torch.set_rng_state(checkpoint["torch_rng"])
@@ -846,19 +1004,20 @@ if __name__ == "__main__":
                     reward_ready = True
                 next_feedback_step = global_step + args.feedback_every
                 overhead_seconds += time.perf_counter() - session_start
-            if reward_ready and counts["value_resets"] == 0:  # the end of pre-training: a fresh value function
-                critic = mlp(obs_dim, 1, args.hidden_dim, args.num_layers).to(device)
-                critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
+            if reward_ready and counts["value_resets"] == 0:  # the end of pre-training: a new value head
+                reset_value_head(critic)
                 counts["value_resets"] += 1
 
             # Rollout of num_steps in every environment
             for step in range(args.num_steps):
                 obs_stats.update(raw_obs)
                 obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
+                if not reward_ready:  # pre-training: r_int(s_t) of Algorithm 2
+                    knn_start = time.perf_counter()
+                    intrinsic_buf[step] = knn_reward(torch.as_tensor(raw_obs, dtype=torch.float32, device=device))
+                    overhead_seconds += time.perf_counter() - knn_start
                 with torch.no_grad():
-                    distribution = actor.distribution(obs)
-                    action = distribution.sample()
-                    logprobs_buf[step] = distribution.log_prob(action).sum(-1)
+                    action, logprobs_buf[step] = explore(actor, obs, step, args.sde_freq)
                     values_buf[step] = critic(obs)[:, 0]
                 env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
                 env_action_np = env_action.cpu().numpy()
@@ -869,7 +1028,6 @@ if __name__ == "__main__":
                 real_next = true_next_observations(next_raw_obs, infos, done)
                 raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action
                 env_actions_buf[step] = env_action
-                next_raw_obs_buf[step] = torch.as_tensor(real_next)
                 true_rewards_buf[step], dones_buf[step] = torch.as_tensor(true_reward), torch.as_tensor(done, dtype=torch.float32)
                 with torch.no_grad():  # V of the state after this step; at a truncation it bootstraps the reward
                     next_values = critic(torch.as_tensor(obs_stats.normalize(real_next), device=device))[:, 0]
@@ -890,12 +1048,7 @@ if __name__ == "__main__":
 
             # The reward PPO maximises: kNN state entropy (pre-training), r_hat (Algorithm 3) or the true reward
             if not reward_ready:
-                knn_start = time.perf_counter()
-                flat_next = next_raw_obs_buf.reshape(-1, obs_dim)
-                intrinsic = knn_distance(flat_next, flat_next, args.knn_k)
-                intrinsic_stats.update(intrinsic.cpu().numpy())
-                rewards = (intrinsic / math.sqrt(intrinsic_stats.var[0] + 1e-8)).reshape(rollout_shape)
-                overhead_seconds += time.perf_counter() - knn_start
+                rewards = intrinsic_buf
                 counts["updates_on_knn_reward"] += 1
             elif args.ground_truth_reward:
                 rewards = true_rewards_buf.clone()
@@ -912,22 +1065,22 @@ if __name__ == "__main__":
             b_obs, b_actions = obs_buf.reshape(-1, obs_dim), actions_buf.reshape(-1, action_dim)
             b_logprobs, b_advantages, b_returns, b_values = (x.reshape(-1) for x in (logprobs_buf, advantages, returns, values_buf))
             batch_size, clip_fractions = b_obs.shape[0], []
-            for epoch in range(args.update_epochs):
+            clip = clip_range(args.clip_coef, global_step, args.total_timesteps)
+            epochs = args.update_epochs if reward_ready else args.unsup_update_epochs
+            for epoch in range(epochs):
                 order = torch.randperm(batch_size, device=device)
                 for start in range(0, batch_size, args.minibatch_size):
                     idx = order[start : start + args.minibatch_size]
-                    distribution = actor.distribution(b_obs[idx])
-                    log_ratio = distribution.log_prob(b_actions[idx]).sum(-1) - b_logprobs[idx]
-                    ratio = log_ratio.exp()
-                    with torch.no_grad():
-                        approx_kl = ((ratio - 1) - log_ratio).mean()
-                        clip_fractions.append(((ratio - 1).abs() > args.clip_coef).float().mean().item())
+                    distribution, _ = actor.distribution(b_obs[idx])
                     adv = b_advantages[idx]
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
-                    policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
-                    value_loss = 0.5 * ((critic(b_obs[idx])[:, 0] - b_returns[idx]) ** 2).mean()
                     entropy = distribution.entropy().sum(-1).mean()
-                    loss = policy_loss - args.ent_coef * entropy + args.vf_coef * value_loss
+                    loss, policy_loss, value_loss, ratio = ppo_loss(
+                        distribution.log_prob(b_actions[idx]).sum(-1), b_logprobs[idx], adv, critic(b_obs[idx])[:, 0],
+                        b_returns[idx], entropy, clip, args.vf_coef, args.ent_coef)
+                    with torch.no_grad():
+                        approx_kl = ((ratio - 1) - ratio.log()).mean()
+                        clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
                     check_finite("PPO loss", loss)  # before the step: the networks stay finite
                     actor_optimizer.zero_grad()
                     critic_optimizer.zero_grad()
@@ -935,7 +1088,9 @@ if __name__ == "__main__":
                     nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
                     actor_optimizer.step()
                     critic_optimizer.step()
+            counts["ppo_epochs"] += epochs
             explained_variance = 1 - (b_returns - b_values).var() / b_returns.var().clamp(min=1e-8)
+            writer.add_scalar("charts/clip_range", clip, global_step)
             for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy, "approx_kl": approx_kl,
                                 "clipfrac": np.mean(clip_fractions), "explained_variance": explained_variance}.items():
                 writer.add_scalar(f"losses/{name}", float(value), global_step)
@@ -969,9 +1124,15 @@ if __name__ == "__main__":
                       f"continue with --resume {output_dir}", flush=True)
                 sys.exit(128 + stop_signal)
     except NonFiniteError as error:
-        save_checkpoint()  # the check comes before the optimizer step, so the saved state is finite
-        fail(f"{error} at step {global_step}; run stopped, its last finite state is in {output_dir}/checkpoint.pt "
-             f"and its labels in {output_dir}/labels", code=3)
+        # Mid-rollout or mid-update the envs have moved past the last checkpoint, which stays as it is. The state
+        # at the failure (finite: the checks come before the optimizer steps) goes to a file of its own, to
+        # inspect, not to resume from
+        save_checkpoint("checkpoint_nonfinite.pt")
+        last = os.path.join(output_dir, "checkpoint.pt")
+        fail(f"{error} at step {global_step}; run stopped, "
+             f"{'its last checkpoint is intact in ' + last if os.path.exists(last) else 'no checkpoint was due yet'}, "
+             f"the state at the failure is in {output_dir}/checkpoint_nonfinite.pt and the labels in "
+             f"{output_dir}/labels", code=3)
     except OSError as error:
         fail(f"writing to {output_dir!r} failed at step {global_step} ({error.strerror or error}); "
              "the last checkpoint there is intact", code=1)

@@ -15,7 +15,7 @@ import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
 from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
-        "--eval-episodes", "1", "--update-epochs", "2"]
+        "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"]
 
 
 def run_prefppo(out, *flags, timeout=600):
@@ -96,6 +96,203 @@ def test_running_mean_std_matches_numpy():
     np.testing.assert_allclose(stats.var, everything.var(0), rtol=1e-4)
 
 
+def assert_orthogonal(weight: torch.Tensor, gain: float):
+    """W W^T = gain^2 I (rows orthonormal) or W^T W = gain^2 I (columns), whichever side is the smaller."""
+    product = weight @ weight.T if weight.shape[0] <= weight.shape[1] else weight.T @ weight
+    torch.testing.assert_close(product, gain**2 * torch.eye(len(product)), atol=1e-5, rtol=1e-4)
+
+
+def test_networks_start_with_sb3_orthogonal_init():
+    torch.manual_seed(0)
+    actor, critic = prefppo.Actor(24, 6, 64, 3, use_sde=True), prefppo.make_critic(24, 64, 3)
+    actor_hidden = [m for m in actor.body if isinstance(m, torch.nn.Linear)]
+    critic_linear = [m for m in critic if isinstance(m, torch.nn.Linear)]
+    assert len(actor_hidden) == len(critic_linear) - 1 == 3
+    for layer in actor_hidden + critic_linear[:-1]:  # hidden layers: gain sqrt(2)
+        assert_orthogonal(layer.weight.detach(), math.sqrt(2))
+    assert_orthogonal(actor.action_net.weight.detach(), 0.01)  # policy output: 0.01
+    assert_orthogonal(critic_linear[-1].weight.detach(), 1.0)  # value output: 1
+    for layer in actor_hidden + critic_linear + [actor.action_net]:
+        assert not layer.bias.any()
+    assert actor.log_std.shape == (64, 6) and not actor.log_std.any()  # gSDE: one log std 0 per feature and action
+    assert prefppo.Actor(24, 6, 64, 3, use_sde=False).log_std.shape == (6,)
+
+
+def test_gsde_std_of_a_hand_built_case():
+    latent = torch.tensor([[1.0, 2.0]])
+    log_std = torch.log(torch.tensor([[1.0, 2.0], [3.0, 1.0]]))
+    # action 0: 1^2 * 1^2 + 2^2 * 3^2 = 37; action 1: 1^2 * 2^2 + 2^2 * 1^2 = 8 (+ SB3's 1e-6)
+    torch.testing.assert_close(prefppo.sde_std(latent, log_std), torch.tensor([[37 + 1e-6, 8 + 1e-6]]).sqrt())
+
+
+def test_gsde_log_prob_is_the_normal_of_the_latent_std():
+    torch.manual_seed(0)
+    actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
+    with torch.no_grad():
+        actor.log_std.copy_(torch.randn(16, 3) * 0.5)
+    obs = torch.randn(4, 5)
+    actor.reset_noise(4)
+    action, log_prob = actor.sample(obs)
+    with torch.no_grad():  # the same by hand: latent, per-sample std, a diagonal Normal
+        latent = actor.body(obs)
+        std = torch.sqrt((latent**2).unsqueeze(-1).mul(actor.log_std.exp() ** 2).sum(1) + 1e-6)  # sum over features
+        direct = torch.distributions.Normal(actor.action_net(latent), std).log_prob(action).sum(-1)
+        entropy = torch.distributions.Normal(actor.action_net(latent), std).entropy()
+    torch.testing.assert_close(log_prob, direct)
+    distribution, _ = actor.distribution(obs)  # what the PPO update evaluates
+    torch.testing.assert_close(distribution.log_prob(action).sum(-1), direct)
+    torch.testing.assert_close(distribution.entropy(), entropy)
+
+
+def test_gsde_action_is_the_mean_plus_the_latent_times_the_env_matrix():
+    torch.manual_seed(0)
+    actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
+    obs = torch.randn(4, 5)
+    actor.reset_noise(4)
+    with torch.no_grad():
+        action, _ = actor.sample(obs)
+        latent = actor.body(obs)
+        for n in range(4):
+            torch.testing.assert_close(action[n], actor.action_net(latent[n]) + latent[n] @ actor.exploration[n])
+    # the noise that the matrices give has the std that the log-probability uses (20000 draws, 3% tolerance)
+    actor.reset_noise(20_000)
+    with torch.no_grad():
+        one_state = obs[:1].expand(20_000, 5)
+        noise = actor.sample(one_state)[0] - actor.mean(one_state)
+        expected = prefppo.sde_std(actor.body(obs[:1]), actor.log_std)[0]
+    torch.testing.assert_close(noise.std(0), expected, rtol=0.03, atol=0)
+
+
+def test_gsde_noise_is_kept_for_sde_freq_steps_and_differs_between_envs():
+    torch.manual_seed(0)
+    actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
+    obs = torch.randn(1, 5).expand(2, 5)  # two envs in the same state
+    with torch.no_grad():
+        noise = torch.stack([prefppo.explore(actor, obs, step, sde_freq=4)[0] - actor.mean(obs) for step in range(8)])
+    for step in (1, 2, 3):
+        torch.testing.assert_close(noise[step], noise[0])  # steps 0-3: one matrix per env
+        torch.testing.assert_close(noise[4 + step], noise[4])  # steps 4-7: the next one
+    assert not torch.allclose(noise[4], noise[0], atol=1e-3)  # a new matrix at step 4
+    assert not torch.allclose(noise[0, 0], noise[0, 1], atol=1e-3)  # each env its own matrix
+    with torch.no_grad():  # step 0 of the next rollout draws again
+        assert not torch.allclose(prefppo.explore(actor, obs, 0, sde_freq=4)[0] - actor.mean(obs), noise[4], atol=1e-3)
+
+
+def test_value_reset_redraws_only_the_output_layer_and_keeps_the_optimizer():
+    torch.manual_seed(0)
+    critic = prefppo.make_critic(5, 16, 2)
+    optimizer = torch.optim.Adam(critic.parameters(), lr=1e-2, eps=1e-5)
+    for _ in range(3):  # trained a little: the optimizer has moments, the output layer has moved
+        optimizer.zero_grad()
+        ((critic(torch.randn(32, 5))[:, 0] - 3.0) ** 2).mean().backward()
+        optimizer.step()
+    before = {name: p.detach().clone() for name, p in critic.named_parameters()}
+    moments = {id(p): {k: v.clone() for k, v in optimizer.state[p].items()} for p in critic.parameters()}
+    params_before = list(critic.parameters())
+    prefppo.reset_value_head(critic)
+    hidden = [name for name in before if not name.startswith(f"{len(critic) - 1}.")]
+    assert len(hidden) == 4  # two hidden layers' weights and biases
+    for name in hidden:
+        torch.testing.assert_close(dict(critic.named_parameters())[name], before[name], rtol=0, atol=0)
+    output = critic[-1]
+    assert not torch.equal(output.weight, before[f"{len(critic) - 1}.weight"])
+    assert_orthogonal(output.weight.detach(), 1.0)
+    assert not output.bias.any()
+    # the same parameter objects, still the optimizer's, with their Adam moments untouched
+    assert all(a is b for a, b in zip(critic.parameters(), params_before))
+    assert all(any(p is q for q in optimizer.param_groups[0]["params"]) for p in critic.parameters())
+    for p in critic.parameters():
+        for key, value in moments[id(p)].items():
+            torch.testing.assert_close(optimizer.state[p][key], value, rtol=0, atol=0)
+
+
+def test_ppo_loss_weighs_the_value_mse_by_vf_coef_once():
+    log_prob = torch.log(torch.tensor([1.5, 0.5]))  # ratios 1.5 and 0.5 against old log-probs 0
+    advantages = torch.tensor([1.0, -1.0])
+    values, returns = torch.tensor([1.0, 3.0]), torch.tensor([2.0, 1.0])
+    loss, policy_loss, value_loss, ratio = prefppo.ppo_loss(log_prob, torch.zeros(2), advantages, values, returns,
+                                                            torch.tensor(0.7), clip=0.2, vf_coef=0.5, ent_coef=0.1)
+    torch.testing.assert_close(ratio, torch.tensor([1.5, 0.5]))
+    # sample 0: max(-1.5, -1.2) = -1.2 (clipped at 1.2); sample 1: max(0.5, 0.8) = 0.8 (clipped at 0.8)
+    assert policy_loss.item() == pytest.approx((-1.2 + 0.8) / 2)
+    assert value_loss.item() == pytest.approx((1 + 4) / 2)  # plain MSE
+    assert loss.item() == pytest.approx(-0.2 + 0.5 * 2.5 - 0.1 * 0.7)  # 0.5 x MSE in total, not 0.25
+
+
+def test_clip_range_decays_linearly_from_its_initial_value_to_zero():
+    total = 4_000_000
+    assert prefppo.clip_range(0.4, 0, total) == pytest.approx(0.4)
+    assert prefppo.clip_range(0.4, 16_000, total) == pytest.approx(0.4 * (1 - 16_000 / total))  # first update
+    assert prefppo.clip_range(0.4, total // 2, total) == pytest.approx(0.2)
+    assert prefppo.clip_range(0.4, total, total) == 0.0
+    assert prefppo.clip_range(0.4, total + 16_000, total) == 0.0  # a last rollout past the total: never negative
+
+
+def test_ppo_epochs_default_to_the_reference_runs():
+    args = prefppo.Args()
+    assert (args.update_epochs, args.unsup_update_epochs) == (20, 50)
+
+
+def test_knn_reward_scores_each_state_against_every_pretraining_state_so_far():
+    knn = prefppo.KnnStateEntropy(obs_dim=1, k=1, device=torch.device("cpu"))
+    first = knn(torch.tensor([[0.0], [3.0]]))  # buffer {0, 3}: each one's nearest other state is 3 away
+    assert knn.count == 2
+    second = knn(torch.tensor([[1.0], [10.0]]))  # buffer {0, 3, 1, 10}: 1 is 1 from 0, 10 is 7 from 3
+    # within this step alone 1 and 10 would be 9 apart; distances so far 3, 3, 1, 7: running var 19 / 4
+    std = math.sqrt(19 / 4)
+    np.testing.assert_allclose(second.numpy(), [1 / std, 7 / std], rtol=1e-3)
+    assert first[0] == first[1] > 0
+    # the buffer grows past its first allocation, and a checkpoint's copy goes on identically
+    many = torch.randn(700, 2, 1)
+    for states in many:
+        knn(states)
+    assert knn.count == 4 + 1400 and len(knn.states) >= 1404
+    copy = prefppo.KnnStateEntropy(obs_dim=1, k=1, device=torch.device("cpu"))
+    copy.load_state_dict(knn.state_dict())
+    step = torch.tensor([[0.5], [-0.5]])
+    torch.testing.assert_close(copy(step), knn(step), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("env_id, epochs", [("walker-walk", 100), ("quadruped-walk", 100), ("cheetah-run", 100),
+                                            ("button-press", 50), ("sweep-into", 50), ("Pendulum-v1", 100)])
+def test_reward_model_epochs_follow_the_reference_runs(env_id, epochs):
+    assert prefppo.resolve(prefppo.Args(env_id=env_id)).reward_epochs == epochs
+
+
+def test_the_resolved_configuration_names_every_teacher_field():
+    myopic = prefppo.resolve(prefppo.Args(teacher="myopic", teacher_eps_mistake=0.2))
+    assert (myopic.teacher_beta, myopic.teacher_gamma, myopic.teacher_eps_mistake, myopic.teacher_eps_skip,
+            myopic.teacher_eps_equal) == (math.inf, 0.9, 0.2, 0.0, 0.0)  # the preset's gamma, the flag's eps_mistake
+    assert prefppo.resolve(prefppo.Args(teacher="stoc")).teacher_beta == 1.0
+
+
+def test_query_pool_keeps_every_episode_by_default():
+    assert prefppo.Args().query_recent_episodes == 0
+    everything, recent = prefppo.annotation_buffer(0), prefppo.annotation_buffer(100)
+    for episode in range(4000):  # walker's 4M steps
+        everything.append(episode)
+        recent.append(episode)
+    assert len(everything) == 4000 and everything[0] == 0  # pre-training's episodes included
+    assert list(recent) == list(range(3900, 4000))
+
+
+def test_runs_with_different_seeds_share_no_environment_seed():
+    run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
+    seeds1 = set(run1["envs"]) | {run1["eval"], run1["video"]}
+    seeds2 = set(run2["envs"]) | {run2["eval"], run2["video"]}
+    assert len(seeds1) == len(seeds2) == 34  # 32 training envs, evaluation and video: all different in a run
+    assert not seeds1 & seeds2  # env i used to get seed + i: runs 1 and 2 shared 31 of 32
+    assert prefppo.run_seeds(1, 32)["envs"] == run1["envs"]  # a run's seeds are reproducible
+    assert all(0 <= s < 2**32 for s in seeds1)  # dm_control's RandomState takes 32-bit seeds
+
+
+def test_query_sampler_and_teacher_draw_independent_streams():
+    seeds = prefppo.run_seeds(1, 4)
+    teacher = prefppo.make_teacher("stoc", seed=seeds["teacher"])
+    # with one seed for both (the old behaviour) these draws were the same numbers
+    assert not np.array_equal(seeds["sampler"].random(8), teacher.rng.random(8))
+
+
 # ---------------------------------------------------------------- smoke runs
 
 
@@ -116,7 +313,8 @@ def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: 
         assert session["rewards0"].shape == (n, segment_len)
         # the oracle's labels agree with the saved true rewards of the saved (raw) segments
         np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
-    # segments hold the executed (clipped) actions: the initial policy (std 1) samples outside [-1, 1] ~30% of the time
+    # segments hold the executed (clipped) actions: the initial gSDE policy (std = the latent's norm, over 1)
+    # samples outside [-1, 1] most of the time
     actions = np.abs(np.concatenate([np.concatenate([s["actions0"], s["actions1"]]).ravel() for s in labels]))
     assert actions.max() <= 1.0 and (actions == 1.0).mean() > 0.05
     assert list(out.glob("events.out.tfevents.*"))
@@ -133,6 +331,7 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
     assert [int(r["step"]) for r in rows] == [3000, 5000]
     config = json.loads((out / "config.json").read_text())
     assert config["gae_lambda"] == 0.92 and config["learning_rate"] == 5e-5  # walker-walk preset
+    assert config["teacher_gamma"] == 1.0 and config["teacher_beta"] == math.inf  # the oracle, written out
 
 
 def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
@@ -172,11 +371,22 @@ def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, s
 
 def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     out = tmp_path / "truth"
-    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward")
+    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--unsup-update-epochs", "3")
     assert result.returncode == 0, result.stderr[-3000:]
     counts = finished_counts(result.stdout)
-    assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1}
+    # 2 pre-training rollouts of 3 epochs, then 4 rollouts of --update-epochs 2 (TINY)
+    assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1, "ppo_epochs": 14}
     assert not session_lines(result.stdout) and not saved_labels(out)
+    log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
+    assert log_std.shape == (32, 1) and log_std.any()  # gSDE by default: hidden 32 (TINY) x 1 action, trained
+
+
+def test_no_use_sde_trains_a_state_independent_std(tmp_path):
+    out = tmp_path / "no_sde"
+    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--total-timesteps", "2400", "--no-use-sde")
+    assert result.returncode == 0, result.stderr[-3000:]
+    log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
+    assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
 
 def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
@@ -199,6 +409,8 @@ BAD_INPUTS = [
     (["--num-envs", "2", "--num-steps", "10", "--minibatch-size", "64"], "--minibatch-size must be in [1, --num-envs x --num-steps = 20]"),
     (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
     (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
+    (["--seed", "-1"], "--seed must be >= 0, got -1"),
+    (["--query-recent-episodes", "-1"], "--query-recent-episodes must be >= 0, got -1"),
 ]
 
 

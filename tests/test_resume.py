@@ -26,7 +26,7 @@ RUNS = {
                    "--num-steps", "250", "--minibatch-size", "250", "--feedback-every", "1000", "--max-feedback", "40",
                    "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1000", "--checkpoint-every",
                    "2000", "--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
-                   "--eval-episodes", "1", "--update-epochs", "2"],
+                   "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"],
 }
 SCRIPTS = list(RUNS)
 
@@ -156,12 +156,10 @@ TOY = ["--seed-steps", "100", "--unsup-steps", "100", "--total-timesteps", "600"
        "--segment-len", "10"]
 TOY_PPO = ["--unsup-steps", "80", "--total-timesteps", "640", "--num-envs", "2", "--num-steps", "40", "--minibatch-size",
            "40", "--ground-truth-reward", "--hidden-dim", "16", "--num-layers", "1", "--eval-every", "200",
-           "--eval-episodes", "1", "--segment-len", "10", "--update-epochs", "1"]
+           "--eval-episodes", "1", "--segment-len", "10", "--update-epochs", "1", "--unsup-update-epochs", "1"]
 
 
-@pytest.mark.parametrize("script, flags, quantity", [
-    ("pebble.py", TOY, "critic loss"), ("prefppo.py", TOY_PPO, "PPO loss"),
-])
+@pytest.mark.parametrize("script, flags, quantity", [("pebble.py", TOY, "critic loss")])
 def test_a_diverging_loss_stops_the_run_with_a_finite_checkpoint(script, flags, quantity, tmp_path):
     out = tmp_path / "run"
     result = run_script(script, out, "--env-id", "tests.toy_envs:HugeReward-v0", *flags)
@@ -173,12 +171,49 @@ def test_a_diverging_loss_stops_the_run_with_a_finite_checkpoint(script, flags, 
         assert all(torch.isfinite(t).all() for t in saved[name].values())
 
 
-@pytest.mark.parametrize("script, flags", [("pebble.py", TOY), ("prefppo.py", TOY_PPO)])
+@pytest.mark.parametrize("script, flags", [("pebble.py", TOY)])
 def test_a_nan_from_the_environment_stops_the_run(script, flags, tmp_path):
     result = run_script(script, tmp_path / "run", "--env-id", "tests.toy_envs:NaNReward-v0", *flags)
     assert result.returncode == 3 and "Traceback" not in result.stderr
     assert "error: non-finite reward (nan) or observation from the environment at step" in result.stderr
     assert (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def prefppo_stopped_by(env_id: str, checkpoint_every: int, out) -> subprocess.CompletedProcess:
+    result = run_script("prefppo.py", out, "--env-id", env_id, *TOY_PPO, "--checkpoint-every", str(checkpoint_every))
+    assert result.returncode == 3 and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert f"its last checkpoint is intact in {out}/checkpoint.pt" in result.stderr
+    assert f"the state at the failure is in {out}/checkpoint_nonfinite.pt" in result.stderr
+    return result
+
+
+def test_prefppo_diverging_loss_keeps_the_last_good_checkpoint(tmp_path):
+    # rollouts of 80 steps: checkpoint after the first (pre-training); the update after the second, on the true
+    # reward 1e30, overflows the value loss
+    out = tmp_path / "run"
+    result = prefppo_stopped_by("tests.toy_envs:HugeReward-v0", 80, out)
+    assert result.stderr.startswith("error: non-finite PPO loss (inf) at step 160;"), result.stderr
+    assert result.stdout.count("checkpoint.pt saved") == 1
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 80  # untouched
+    failed = torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)
+    assert failed["progress"]["global_step"] == 160
+    for name in ("actor", "critic"):  # checked before the optimizer step: the networks are still finite
+        assert all(torch.isfinite(t).all() for t in failed[name].values())
+
+
+def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
+    # each env's 300th step returns NaN: in the rollout from step 560 (8th of 80 steps), after checkpoints at
+    # 160, 320 and 480; the envs have moved past 480, so checkpoint.pt must stay the one of step 480
+    out = tmp_path / "run"
+    result = prefppo_stopped_by("tests.toy_envs:NaNReward-v0", 160, out)
+    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 560;")
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 480
+    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 560
+    # the last good checkpoint resumes, and the same environments fail at the same step again
+    resumed = run_script("prefppo.py", out, "--resume", str(out))
+    assert resumed.returncode == 3 and "resuming from the checkpoint at step 480" in resumed.stdout
+    assert "observation from the environment at step 560;" in resumed.stderr
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

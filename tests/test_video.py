@@ -20,7 +20,8 @@ PEBBLE_TINY = ["--env-id", "walker-walk", "--total-timesteps", "1200", "--seed-s
                "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"]
 PREFPPO_TINY = ["--env-id", "InvertedPendulum-v5", "--ground-truth-reward", "--total-timesteps", "1000", "--unsup-steps", "500",
                 "--num-envs", "2", "--num-steps", "250", "--minibatch-size", "125", "--eval-every", "1000",
-                "--hidden-dim", "32", "--num-layers", "2", "--eval-episodes", "1", "--update-epochs", "2"]
+                "--hidden-dim", "32", "--num-layers", "2", "--eval-episodes", "1", "--update-epochs", "2",
+                "--unsup-update-epochs", "2"]
 
 
 def egl_renders() -> bool:
