@@ -93,7 +93,9 @@ class Args:
     batch_size: int | None = None
     """SAC batch size"""
     learning_rate: float | None = None
-    """learning rate of actor, critics and temperature"""
+    """learning rate of actor and critics"""
+    alpha_lr: float = 1e-4
+    """learning rate of the SAC temperature (reference code: 1e-4 on every task)"""
     eval_every: int = 10000
     """environment steps between evaluations"""
     eval_episodes: int = 10
@@ -237,12 +239,20 @@ def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=
     return nn.Sequential(*layers, nn.Linear(dim, out_dim))
 
 
+def orthogonal_init(module: nn.Module):
+    """Reference code (utils.weight_init, applied to actor and critics): orthogonal weights, zero biases."""
+    if isinstance(module, nn.Linear):
+        nn.init.orthogonal_(module.weight)
+        nn.init.zeros_(module.bias)
+
+
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; log std bounded to [-5, 2] as in the reference SAC."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
         self.net = mlp(obs_dim, 2 * action_dim, hidden_dim, num_layers)
+        self.apply(orthogonal_init)
 
     def forward(self, obs):
         mean, log_std = self.net(obs).chunk(2, dim=-1)
@@ -261,12 +271,13 @@ class Actor(nn.Module):
 
 
 class TwinCritic(nn.Module):
-    """Two Q-networks, Q(s, a) -> (q1, q2)."""
+    """Two Q-networks, Q(s, a) -> (q1, q2); also the fresh critics of PEBBLE's critic reset."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
         self.q1 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
         self.q2 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
+        self.apply(orthogonal_init)
 
     def forward(self, obs, action):
         x = torch.cat([obs, action], dim=-1)
@@ -432,7 +443,7 @@ def check_args(args: Args, episode_len: int) -> str | None:
          "--hidden-dim, --num-layers, --batch-size, --reward-batch-size and --reward-ensemble-size must be >= 1"),
         (min(args.eval_every, args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
          "--eval-every, --eval-episodes, --knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
-        (args.learning_rate > 0 and args.reward_lr > 0, "--learning-rate and --reward-lr must be > 0"),
+        (min(args.learning_rate, args.alpha_lr, args.reward_lr) > 0, "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
         (0 < args.gamma <= 1 and 0 < args.tau <= 1, "--gamma and --tau must be in (0, 1]"),
         (args.init_temperature > 0, f"--init-temperature must be > 0, got {args.init_temperature}"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
@@ -692,7 +703,7 @@ if __name__ == "__main__":
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate)
     critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
-    alpha_optimizer = torch.optim.Adam([log_alpha], lr=args.learning_rate)
+    alpha_optimizer = torch.optim.Adam([log_alpha], lr=args.alpha_lr)
     target_entropy = -float(action_dim)
     buffer = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device)
     intrinsic_stats = RunningMeanStd()

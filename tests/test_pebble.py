@@ -42,6 +42,26 @@ def test_running_mean_std_matches_numpy_over_all_batches():
     assert stats.count == len(everything)
 
 
+def assert_orthogonal_with_zero_biases(state_dict: dict, atol: float = 1e-5, bias_atol: float = 0.0):
+    """Every Linear weight W (out x in) has orthonormal rows (W W^T = I, out <= in) or columns (W^T W = I),
+    and every bias is zero (within bias_atol)."""
+    weights = {k: v for k, v in state_dict.items() if k.endswith(".weight")}
+    assert weights
+    for name, w in weights.items():
+        gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+        torch.testing.assert_close(gram, torch.eye(len(gram)), atol=atol, rtol=0, msg=name)
+        assert state_dict[name.removesuffix("weight") + "bias"].abs().max() <= bias_atol, name
+
+
+@pytest.mark.parametrize("obs_dim, action_dim, hidden_dim, num_layers", [(24, 6, 64, 2), (100, 4, 32, 3)])
+def test_actor_and_critic_start_orthogonal_with_zero_biases(obs_dim, action_dim, hidden_dim, num_layers):
+    torch.manual_seed(0)  # (100, 4, 32, 3): first layers wider in than out, so both Gram forms are checked
+    assert_orthogonal_with_zero_biases(pebble.Actor(obs_dim, action_dim, hidden_dim, num_layers).state_dict())
+    assert_orthogonal_with_zero_biases(pebble.TwinCritic(obs_dim, action_dim, hidden_dim, num_layers).state_dict())
+    default = torch.nn.Linear(hidden_dim, hidden_dim)  # PyTorch's own init is far from orthogonal
+    assert not torch.allclose(default.weight @ default.weight.T, torch.eye(hidden_dim), atol=1e-2)
+
+
 def test_relabel_covers_the_whole_wrapped_buffer():
     torch.manual_seed(0)
     buffer = pebble.ReplayBuffer(capacity=10, obs_dim=3, action_dim=2, device="cpu")
@@ -206,6 +226,20 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
     assert int(eval_rows(out)[-1]["feedback"]) == 0
 
 
+def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rate(tmp_path):
+    out = tmp_path / "run"  # a learning rate of 1e-12 leaves actor and critic where their init put them
+    result = run_pebble(out, *PENDULUM, "--learning-rate", "1e-12", "--checkpoint-every", "1100")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert finished_counts(result.stdout)["critic_resets"] == 1  # the checkpoint's critic is the reset one
+    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    for name in ("actor", "critic", "critic_target"):
+        assert_orthogonal_with_zero_biases(saved[name], atol=1e-6, bias_atol=1e-6)
+    lrs = {name: saved[f"{name}_optimizer"]["param_groups"][0]["lr"] for name in ("actor", "critic", "alpha")}
+    assert lrs == {"actor": 1e-12, "critic": 1e-12, "alpha": 1e-4}  # --alpha-lr's default, reference code
+    assert abs(saved["log_alpha"].item() - math.log(0.1)) > 1e-3  # the temperature did learn at 1e-4
+    assert json.loads((out / "config.json").read_text())["alpha_lr"] == 1e-4
+
+
 def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
     flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy"]
     first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
@@ -232,7 +266,8 @@ BAD_INPUTS = [
     (["--total-timesteps", "500"], "--total-timesteps (500) must exceed"),
     (["--feedback-every", "0"], "--feedback-every must be >= 1"),
     (["--label-smoothing", "1"], "--label-smoothing must be in [0, 1)"),
-    (["--learning-rate", "0"], "--learning-rate and --reward-lr must be > 0"),
+    (["--learning-rate", "0"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
+    (["--alpha-lr", "-1e-4"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
 ]
 
 
