@@ -14,6 +14,7 @@ import time
 import warnings
 import zlib
 from dataclasses import asdict, dataclass, fields
+from typing import NamedTuple
 
 import cloudpickle
 import gymnasium as gym
@@ -298,6 +299,14 @@ class RewardEnsemble(nn.Module):
         return torch.stack([member(obs_action) for member in self.members])
 
 
+class Batch(NamedTuple):
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    terminated: torch.Tensor
+
+
 class ReplayBuffer:
     """Transitions on the training device. `rewards` holds the learned reward r_hat (relabelled after
     each reward update), `true_rewards` the environment's, `intrinsic` is computed per batch."""
@@ -318,7 +327,7 @@ class ReplayBuffer:
 
     def sample(self, batch_size):
         idx = torch.randint(self.size, (batch_size,), device=self.device)
-        return self.obs[idx], self.actions[idx], self.rewards[idx], self.next_obs[idx], self.terminated[idx]
+        return Batch(self.obs[idx], self.actions[idx], self.rewards[idx], self.next_obs[idx], self.terminated[idx])
 
 
 class RunningMeanStd:
@@ -351,6 +360,13 @@ def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: i
             nearest = candidates.topk(min(k + 1, candidates.shape[1]), dim=1, largest=False).values
         kth.append(nearest[:, -1:])
     return torch.cat(kth)
+
+
+def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor:
+    """Algorithm 2's r_int(s_t) for a SAC batch, before normalisation: the kNN distance of each batch state
+    s_t (obs, not next_obs; reference code: agent/sac.py) among all states in the buffer. s_t is stored there
+    itself, and knn_distance skips exactly that one zero distance."""
+    return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
 
 def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
@@ -726,11 +742,12 @@ if __name__ == "__main__":
     def sac_update(reward_source: str) -> dict:
         """One SAC step (appendix Eqs. (6)-(7), learned temperature) on a batch whose reward is the learned r_hat, the
         true reward (--ground-truth-reward) or the kNN state entropy (pre-training, Algorithm 2)."""
-        obs, actions, rewards, next_obs, terminated = buffer.sample(args.batch_size)
+        batch = buffer.sample(args.batch_size)
+        obs, actions, rewards, next_obs, terminated = batch
         if reward_source == "intrinsic":
             global overhead_seconds
             knn_start = time.perf_counter()
-            rewards = knn_distance(next_obs, buffer.obs[: buffer.size], args.knn_k)
+            rewards = intrinsic_reward(batch, buffer, args.knn_k)
             intrinsic_stats.update(rewards)
             rewards = rewards / max(intrinsic_stats.std, 1e-8)
             overhead_seconds += time.perf_counter() - knn_start

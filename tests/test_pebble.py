@@ -30,6 +30,21 @@ def test_knn_distance_is_kth_neighbour_not_counting_the_state_itself():
     assert distances[:, 0].tolist() == [3.0, 2.0, 3.0, 4.0, 7.0]
 
 
+def test_intrinsic_reward_scores_the_batch_state_s_t_not_the_next_state():
+    buffer = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1, device="cpu")
+    trajectory = [0.0, 1.0, 3.0, 6.0, 10.0, 15.0]  # s_0 .. s_5: transitions (s_t, s_t+1), s_5 never stored as obs
+    for s, s_next in zip(trajectory, trajectory[1:]):
+        buffer.add(np.array([s], np.float32), np.zeros(1, np.float32), 0.0, 0.0, np.array([s_next], np.float32), False)
+    # k = 2 among the stored states {0, 1, 3, 6, 10}, the state's own zero distance skipped (as in the test above)
+    expected = {0.0: 3.0, 1.0: 2.0, 3.0: 3.0, 6.0: 4.0, 10.0: 7.0}
+    # scoring next_obs would give 2, 3, 4, 7 for these states and 12 for s_4 (s_5 = 15 is not in the buffer)
+    torch.manual_seed(0)
+    batch = buffer.sample(20)
+    rewards = pebble.intrinsic_reward(batch, buffer, k=2)
+    assert rewards[:, 0].tolist() == [expected[s] for s in batch.obs[:, 0].tolist()]
+    assert not torch.equal(rewards, pebble.knn_distance(batch.next_obs, buffer.obs[: buffer.size], k=2))
+
+
 def test_running_mean_std_matches_numpy_over_all_batches():
     rng = np.random.default_rng(0)
     batches = [rng.normal(3.0, 2.0, size=n) for n in (5, 100, 1, 37)]
