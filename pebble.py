@@ -369,6 +369,13 @@ def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor
     return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
 
+def numpy_seeds(seed: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+    """Independent streams for the query sampler and the teacher from one run seed (one generator each,
+    seeded alike, would draw the same numbers)."""
+    sampler_seed, teacher_seed = np.random.SeedSequence(seed).spawn(2)
+    return sampler_seed, teacher_seed
+
+
 def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
     """PEBBLE's relabelling: r_hat = ensemble mean for every stored transition, including after the
     buffer has wrapped (the reference code only relabelled the prefix up to the write position)."""
@@ -700,8 +707,9 @@ if __name__ == "__main__":
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
-    # Seeding: numpy (pairs, teacher via its own seed), torch (networks, batches), environments
-    rng = np.random.default_rng(args.seed)
+    # Seeding: numpy (pairs and teacher, independent streams), torch (networks, batches), environments
+    sampler_seed, teacher_seed = numpy_seeds(args.seed)
+    rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
     # MuJoCo's float64 states cast to float32 give denormal numbers (tiny velocities), which make
     # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
@@ -726,7 +734,7 @@ if __name__ == "__main__":
 
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    teacher = make_teacher(args.teacher, seed=args.seed, **{k: v for k, v in {
+    teacher = make_teacher(args.teacher, seed=teacher_seed, **{k: v for k, v in {
         "beta": args.teacher_beta, "gamma": args.teacher_gamma, "eps_mistake": args.teacher_eps_mistake,
         "eps_skip": args.teacher_eps_skip, "eps_equal": args.teacher_eps_equal}.items() if v is not None})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)

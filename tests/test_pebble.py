@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import pebble
+from sim_teacher import make_teacher
 from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
@@ -75,6 +76,19 @@ def test_actor_and_critic_start_orthogonal_with_zero_biases(obs_dim, action_dim,
     assert_orthogonal_with_zero_biases(pebble.TwinCritic(obs_dim, action_dim, hidden_dim, num_layers).state_dict())
     default = torch.nn.Linear(hidden_dim, hidden_dim)  # PyTorch's own init is far from orthogonal
     assert not torch.allclose(default.weight @ default.weight.T, torch.eye(hidden_dim), atol=1e-2)
+
+
+def test_query_sampler_and_teacher_draw_independent_streams_from_one_seed():
+    sampler_seed, teacher_seed = pebble.numpy_seeds(1)
+    sampler_draws = np.random.default_rng(sampler_seed).random(5)
+    teacher_draws = make_teacher("stoc", seed=teacher_seed).rng.random(5)
+    assert not np.any(sampler_draws == teacher_draws)
+    # one seed for both, as before, gave the teacher the sampler's very numbers
+    np.testing.assert_array_equal(np.random.default_rng(1).random(5), make_teacher("stoc", seed=1).rng.random(5))
+    again = pebble.numpy_seeds(1)  # reproducible from the run seed, and another seed gives other streams
+    np.testing.assert_array_equal(np.random.default_rng(again[0]).random(5), sampler_draws)
+    np.testing.assert_array_equal(make_teacher("stoc", seed=again[1]).rng.random(5), teacher_draws)
+    assert not np.any(np.random.default_rng(pebble.numpy_seeds(2)[0]).random(5) == sampler_draws)
 
 
 def test_relabel_covers_the_whole_wrapped_buffer():
