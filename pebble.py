@@ -886,7 +886,7 @@ if __name__ == "__main__":
     episode_start, episode_steps, episode_return = 0, 0, 0.0
     reward_ready, last_eval, sac_steps = False, float("nan"), 0  # reward_ready: SAC uses buffer.rewards
     counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, relabels=0, critic_resets=0)
-    overhead_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling
+    overhead_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling, r_hat
     eval_log = []  # the rows of eval.csv
 
     def learner_state() -> dict:
@@ -962,15 +962,17 @@ if __name__ == "__main__":
             if (not args.ground_truth_reward and global_step >= next_feedback_step
                     and sessions_done < len(session_sizes) and usable_episodes()):
                 session_start = time.perf_counter()
-                if feedback_session(int(session_sizes[sessions_done]), first=not reward_ready):
+                learned = feedback_session(int(session_sizes[sessions_done]), first=not reward_ready) > 0
+                if learned:
                     relabel(buffer, reward_model)
                     counts["relabels"] += 1
-                    if not reward_ready:
-                        reset_critic()
-                    reward_ready = True
+                session_seconds = time.perf_counter() - session_start
+                overhead_seconds += session_seconds
+                writer.add_scalar("time/feedback_session_seconds", session_seconds, global_step)
+                if learned and not reward_ready:
+                    reset_critic()  # not timed: SAC updates, which the --ground-truth-reward run makes too
+                reward_ready = reward_ready or learned
                 next_feedback_step = global_step + args.feedback_every
-                overhead_seconds += time.perf_counter() - session_start
-                writer.add_scalar("time/feedback_session_seconds", time.perf_counter() - session_start, global_step)
 
             if global_step <= args.seed_steps:
                 action = env.action_space.sample()
