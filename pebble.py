@@ -133,10 +133,11 @@ class Args:
     """SAC updates on relabelled data right after the critic reset of the first reward update"""
 
 
-# Paper appendix, Table of PEBBLE hyperparameters (see README for the sources of the others).
+# Paper appendix, Table of PEBBLE hyperparameters (see README for the sources of the others). Meta-World: feedback
+# every 4950 steps, not the paper's 5000, so that all 200 sessions (10,000 labels) fit in 1M steps (labels_spent)
 DMC_PRESET = dict(total_timesteps=500_000, max_feedback=1000, feedback_per_session=100, feedback_every=20_000,
                   segment_len=50, hidden_dim=1024, num_layers=2, batch_size=1024, learning_rate=5e-4, reward_epochs=50)
-METAWORLD_PRESET = dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50, feedback_every=5000,
+METAWORLD_PRESET = dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50, feedback_every=4950,
                         segment_len=25, hidden_dim=256, num_layers=3, batch_size=512, learning_rate=3e-4, reward_epochs=10)
 GYM_PRESET = dict(DMC_PRESET, hidden_dim=256, num_layers=2, batch_size=256, learning_rate=3e-4)
 PRESETS = {
@@ -427,6 +428,14 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
         if accuracy > 0.97:
             break
     return loss_value, accuracy
+
+
+def labels_spent(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes) -> int:
+    """How many labels the run asks for: the main loop holds session i at step pretrain_steps + 1 + i * feedback_every
+    while that is <= total_timesteps, asking session_sizes[i]. Assumes a complete episode at the end of pre-training
+    (DMC and Meta-World: 1000- and 500-step episodes, pre-training 10K steps); a later first session asks fewer."""
+    n_sessions = max(0, (total_timesteps - pretrain_steps - 1) // feedback_every + 1)
+    return int(np.sum(session_sizes[:n_sessions]))
 
 
 def resolve(args: Args) -> Args:
@@ -738,6 +747,10 @@ if __name__ == "__main__":
         "beta": args.teacher_beta, "gamma": args.teacher_gamma, "eps_mistake": args.teacher_eps_mistake,
         "eps_skip": args.teacher_eps_skip, "eps_equal": args.teacher_eps_equal}.items() if v is not None})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
+    spent = labels_spent(args.total_timesteps, args.seed_steps + args.unsup_steps, args.feedback_every, session_sizes)
+    if spent < args.max_feedback and not args.ground_truth_reward:
+        print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
+              f"steps (sessions from step {args.seed_steps + args.unsup_steps + 1}, every {args.feedback_every} steps)")
     preference_inputs0, preference_inputs1, preference_y, labelled_features = [], [], [], []
     feedback_used = sessions_done = 0
     if args.labels_from and not args.resume:  # earlier labels: free, not counted in this run's budget

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import pebble
+from samplers import schedule_sizes
 from sim_teacher import make_teacher
 from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
 
@@ -89,6 +90,27 @@ def test_query_sampler_and_teacher_draw_independent_streams_from_one_seed():
     np.testing.assert_array_equal(np.random.default_rng(again[0]).random(5), sampler_draws)
     np.testing.assert_array_equal(make_teacher("stoc", seed=again[1]).rng.random(5), teacher_draws)
     assert not np.any(np.random.default_rng(pebble.numpy_seeds(2)[0]).random(5) == sampler_draws)
+
+
+def test_labels_spent_counts_the_sessions_that_fit_before_the_end():
+    sizes = np.array([5, 5, 5, 5, 5])
+    # sessions at steps 11, 41, 71 (101 is past the end): 3 x 5
+    assert pebble.labels_spent(100, 10, 30, sizes) == 15
+    assert pebble.labels_spent(71, 10, 30, sizes) == 15  # a session on the last step still happens
+    assert pebble.labels_spent(70, 10, 30, sizes) == 10
+    assert pebble.labels_spent(10_000, 10, 30, sizes) == 25  # never more than the schedule's budget
+    assert pebble.labels_spent(100, 10, 30, np.array([8, 4, 2, 1])) == 14  # a decaying schedule: its first 3
+
+
+@pytest.mark.parametrize("schedule", ["uniform", "decay", "increase"])
+def test_presets_spend_their_whole_budget(schedule):
+    pretrain = pebble.Args.seed_steps + pebble.Args.unsup_steps
+    for preset in (pebble.METAWORLD_PRESET, pebble.DMC_PRESET, pebble.PRESETS["quadruped-walk"]):
+        sizes = schedule_sizes(schedule, preset["max_feedback"], preset["feedback_per_session"])
+        spent = pebble.labels_spent(preset["total_timesteps"], pretrain, preset["feedback_every"], sizes)
+        assert spent == preset["max_feedback"]  # Meta-World: 10,000 in 200 sessions; walker-walk: 1000
+    # the paper's (and reference code's) every 5000 steps on Meta-World: 198 sessions of 50 fit in 1M steps
+    assert pebble.labels_spent(1_000_000, pretrain, 5000, schedule_sizes("uniform", 10_000, 50)) == 9900
 
 
 def test_relabel_covers_the_whole_wrapped_buffer():
@@ -273,6 +295,7 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
     flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy"]
     first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
     assert first.returncode == second.returncode == 0
+    assert "note: only 20 of the 30 labels of --max-feedback fit in 800 steps" in first.stdout  # sessions at 401, 701
     assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
 
 
