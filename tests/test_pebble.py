@@ -113,6 +113,46 @@ def test_presets_spend_their_whole_budget(schedule):
     assert pebble.labels_spent(1_000_000, pretrain, 5000, schedule_sizes("uniform", 10_000, 50)) == 9900
 
 
+def reset_draws(env, n: int) -> np.ndarray:
+    """The random vector of n resets: Meta-World's task variation (object and goal positions; MT1's 50 tasks are
+    50 fixed ones). Button-press moves its goal with it, sweep-into only its object."""
+    draws = []
+    for _ in range(n):
+        obs, _ = env.reset()
+        draws.append(env.unwrapped._last_rand_vec.copy())
+        np.testing.assert_allclose(obs[-3:], env.unwrapped._target_pos, atol=1e-6)  # the goal is observed
+    return np.array(draws)
+
+
+@pytest.mark.parametrize("env_id", ["button-press", "sweep-into"])
+def test_metaworld_train_and_eval_goals_are_fresh_draws_from_the_whole_range(env_id):
+    from scipy import stats
+
+    n = 100
+    train = reset_draws(pebble.make_env(env_id, seed=1)[0], n)
+    evaluation = reset_draws(pebble.make_env(env_id, seed=1 + 10_000)[0], n)  # the run's evaluation env
+    # a fresh draw at every reset: MT1 alone draws from 50 fixed vectors, other ones for the eval env's seed
+    assert len(np.unique(train, axis=0)) == len(np.unique(evaluation, axis=0)) == n
+    space = pebble.make_env(env_id, seed=1)[0].unwrapped._random_reset_space
+    for draws in (train, evaluation):
+        assert np.all((space.low <= draws) & (draws <= space.high))
+    for i in np.flatnonzero(space.high > space.low):  # each coordinate that varies: uniform over its whole range
+        # (sweep-into redraws objects within 0.15 of its goal, about 1% of the range: within the tolerance)
+        uniform = stats.uniform(space.low[i], space.high[i] - space.low[i]).cdf
+        assert stats.kstest(train[:, i], uniform).pvalue > 0.001
+        assert stats.kstest(evaluation[:, i], uniform).pvalue > 0.001
+        assert stats.ks_2samp(train[:, i], evaluation[:, i]).pvalue > 0.001  # one distribution for both envs
+        width = space.high[i] - space.low[i]  # and both samples span nearly all of it
+        assert train[:, i].max() - train[:, i].min() > 0.9 * width
+        assert evaluation[:, i].max() - evaluation[:, i].min() > 0.9 * width
+
+
+def test_metaworld_goals_are_reproducible_from_the_seed():
+    first, again, other = (reset_draws(pebble.make_env("button-press", seed)[0], 5) for seed in (3, 3, 4))
+    np.testing.assert_array_equal(first, again)
+    assert not np.any(np.all(first == other, axis=1))
+
+
 def test_relabel_covers_the_whole_wrapped_buffer():
     torch.manual_seed(0)
     buffer = pebble.ReplayBuffer(capacity=10, obs_dim=3, action_dim=2, device="cpu")
