@@ -445,10 +445,16 @@ def labels_spent(total_timesteps: int, pretrain_steps: int, feedback_every: int,
     return int(np.sum(session_sizes[:n_sessions]))
 
 
+TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher's, --teacher-* here
+
+
 def resolve(args: Args) -> Args:
-    """Fill every field left None from the task's preset; a flag the user gave wins."""
+    """Fill every field left None from the task's preset and the teacher's; a flag the user gave wins."""
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
+    if args.teacher in TEACHERS:  # an unknown one is check_args' to report
+        teacher = make_teacher(args.teacher)
+        preset = preset | {f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}
     for key, value in preset.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
@@ -482,7 +488,8 @@ def check_args(args: Args, episode_len: int) -> str | None:
          "--hidden-dim, --num-layers, --batch-size, --reward-batch-size and --reward-ensemble-size must be >= 1"),
         (min(args.eval_every, args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
          "--eval-every, --eval-episodes, --knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
-        (min(args.learning_rate, args.alpha_lr, args.reward_lr) > 0, "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
+        (min(args.learning_rate, args.alpha_lr, args.reward_lr) > 0,
+         "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
         (0 < args.gamma <= 1 and 0 < args.tau <= 1, "--gamma and --tau must be in (0, 1]"),
         (args.init_temperature > 0, f"--init-temperature must be > 0, got {args.init_temperature}"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
@@ -750,9 +757,8 @@ if __name__ == "__main__":
 
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    teacher = make_teacher(args.teacher, seed=teacher_seed, **{k: v for k, v in {
-        "beta": args.teacher_beta, "gamma": args.teacher_gamma, "eps_mistake": args.teacher_eps_mistake,
-        "eps_skip": args.teacher_eps_skip, "eps_equal": args.teacher_eps_equal}.items() if v is not None})
+    teacher = make_teacher(args.teacher, seed=teacher_seed,
+                           **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     spent = labels_spent(args.total_timesteps, args.seed_steps + args.unsup_steps, args.feedback_every, session_sizes)
     if spent < args.max_feedback and not args.ground_truth_reward:

@@ -214,6 +214,13 @@ def test_train_reward_learns_a_separable_preference():
     assert np.corrcoef(learned.numpy(), held_out[:, 0, 0].numpy())[0, 1] > 0.8
 
 
+def test_resolved_configuration_records_every_field_of_the_teacher():
+    myopic = pebble.resolve(pebble.Args(env_id="Pendulum-v1", teacher="myopic", teacher_eps_mistake=0.1))
+    resolved = {name: getattr(myopic, f"teacher_{name}") for name in pebble.TEACHER_FIELDS}
+    assert resolved == {"beta": math.inf, "gamma": 0.9, "eps_mistake": 0.1, "eps_skip": 0.0, "eps_equal": 0.0}
+    assert pebble.resolve(pebble.Args(env_id="Pendulum-v1", teacher="skip")).teacher_eps_skip == 0.1
+
+
 # ---------------------------------------------------------------- smoke runs that reach every phase
 
 
@@ -252,6 +259,7 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
         np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
     config = json.loads((out / "config.json").read_text())
     assert config["learning_rate"] == 5e-4  # walker-walk preset fills what was not given
+    assert config["teacher_beta"] == math.inf and config["teacher_gamma"] == 1.0  # the oracle's, resolved
 
 
 def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
