@@ -602,6 +602,10 @@ def resumed_args(args: Args) -> Args:
     with open(os.path.join(args.resume, "config.json")) as f:
         saved = json.load(f)
     defaults = Args()
+    missing = [field.name for field in fields(Args) if field.name not in saved]
+    if missing:
+        raise ValueError(f"--resume {args.resume!r}: its config.json has no {', '.join(missing)} (written by an older "
+                         "pebble.py, whose run this one cannot continue); start a new run")
     for field in fields(Args):
         given = getattr(args, field.name)
         if field.name not in RESUME_MAY_CHANGE and given not in (getattr(defaults, field.name), saved[field.name]):
