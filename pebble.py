@@ -308,6 +308,8 @@ class RewardEnsemble(nn.Module):
 
 
 class Batch(NamedTuple):
+    """Transitions sampled from the replay buffer, one row each."""
+
     obs: torch.Tensor
     actions: torch.Tensor
     rewards: torch.Tensor
