@@ -14,6 +14,7 @@ import time
 import warnings
 import zlib
 from dataclasses import asdict, dataclass, fields
+from typing import NamedTuple
 
 import cloudpickle
 import gymnasium as gym
@@ -93,7 +94,9 @@ class Args:
     batch_size: int | None = None
     """SAC batch size"""
     learning_rate: float | None = None
-    """learning rate of actor, critics and temperature"""
+    """learning rate of actor and critics"""
+    alpha_lr: float = 1e-4
+    """learning rate of the SAC temperature (reference code: 1e-4 on every task)"""
     eval_every: int = 10000
     """environment steps between evaluations"""
     eval_episodes: int = 10
@@ -130,10 +133,11 @@ class Args:
     """SAC updates on relabelled data right after the critic reset of the first reward update"""
 
 
-# Paper appendix, Table of PEBBLE hyperparameters (see README for the sources of the others).
+# Paper appendix, Table of PEBBLE hyperparameters (see README for the sources of the others). Meta-World: feedback
+# every 4950 steps, not the paper's 5000, so that all 200 sessions (10,000 labels) fit in 1M steps (labels_spent)
 DMC_PRESET = dict(total_timesteps=500_000, max_feedback=1000, feedback_per_session=100, feedback_every=20_000,
                   segment_len=50, hidden_dim=1024, num_layers=2, batch_size=1024, learning_rate=5e-4, reward_epochs=50)
-METAWORLD_PRESET = dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50, feedback_every=5000,
+METAWORLD_PRESET = dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50, feedback_every=4950,
                         segment_len=25, hidden_dim=256, num_layers=3, batch_size=512, learning_rate=3e-4, reward_epochs=10)
 GYM_PRESET = dict(DMC_PRESET, hidden_dim=256, num_layers=2, batch_size=256, learning_rate=3e-4)
 PRESETS = {
@@ -214,6 +218,13 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
     elif kind == "metaworld":
         env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3", seed=seed, render_mode=render_mode)
         env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: fixed 500-step episodes
+        # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not
+        # one of MT1's 50 fixed goals. One task is set for its settings (goal observable); then the random vector
+        # (object and goal positions) is unfrozen and drawn from the env's own generator, seeded by `seed`
+        env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
+        env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
+        env.unwrapped._freeze_rand_vec = False
+        env.unwrapped.seeded_rand_vec = True
         episode_len = env.spec.max_episode_steps or 500
     else:
         env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
@@ -237,12 +248,20 @@ def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=
     return nn.Sequential(*layers, nn.Linear(dim, out_dim))
 
 
+def orthogonal_init(module: nn.Module):
+    """Reference code (utils.weight_init, applied to actor and critics): orthogonal weights, zero biases."""
+    if isinstance(module, nn.Linear):
+        nn.init.orthogonal_(module.weight)
+        nn.init.zeros_(module.bias)
+
+
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; log std bounded to [-5, 2] as in the reference SAC."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
         self.net = mlp(obs_dim, 2 * action_dim, hidden_dim, num_layers)
+        self.apply(orthogonal_init)
 
     def forward(self, obs):
         mean, log_std = self.net(obs).chunk(2, dim=-1)
@@ -261,12 +280,13 @@ class Actor(nn.Module):
 
 
 class TwinCritic(nn.Module):
-    """Two Q-networks, Q(s, a) -> (q1, q2)."""
+    """Two Q-networks, Q(s, a) -> (q1, q2); also the fresh critics of PEBBLE's critic reset."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
         self.q1 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
         self.q2 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
+        self.apply(orthogonal_init)
 
     def forward(self, obs, action):
         x = torch.cat([obs, action], dim=-1)
@@ -285,6 +305,16 @@ class RewardEnsemble(nn.Module):
     def forward(self, obs_action):
         """(..., obs+action) -> per-member rewards (members, ..., 1)."""
         return torch.stack([member(obs_action) for member in self.members])
+
+
+class Batch(NamedTuple):
+    """Transitions sampled from the replay buffer, one row each."""
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    terminated: torch.Tensor
 
 
 class ReplayBuffer:
@@ -307,7 +337,7 @@ class ReplayBuffer:
 
     def sample(self, batch_size):
         idx = torch.randint(self.size, (batch_size,), device=self.device)
-        return self.obs[idx], self.actions[idx], self.rewards[idx], self.next_obs[idx], self.terminated[idx]
+        return Batch(self.obs[idx], self.actions[idx], self.rewards[idx], self.next_obs[idx], self.terminated[idx])
 
 
 class RunningMeanStd:
@@ -340,6 +370,20 @@ def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: i
             nearest = candidates.topk(min(k + 1, candidates.shape[1]), dim=1, largest=False).values
         kth.append(nearest[:, -1:])
     return torch.cat(kth)
+
+
+def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor:
+    """Algorithm 2's r_int(s_t) for a SAC batch, before normalisation: the kNN distance of each batch state
+    s_t (obs, not next_obs; reference code: agent/sac.py) among all states in the buffer. s_t is stored there
+    itself, and knn_distance skips exactly that one zero distance."""
+    return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
+
+
+def numpy_seeds(seed: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+    """Independent streams for the query sampler and the teacher from one run seed (one generator each,
+    seeded alike, would draw the same numbers)."""
+    sampler_seed, teacher_seed = np.random.SeedSequence(seed).spawn(2)
+    return sampler_seed, teacher_seed
 
 
 def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
@@ -395,10 +439,24 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
     return loss_value, accuracy
 
 
+def labels_spent(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes) -> int:
+    """How many labels the run asks for: the main loop holds session i at step pretrain_steps + 1 + i * feedback_every
+    while that is <= total_timesteps, asking session_sizes[i]. Assumes a complete episode at the end of pre-training
+    (DMC and Meta-World: 1000- and 500-step episodes, pre-training 10K steps); a later first session asks fewer."""
+    n_sessions = max(0, (total_timesteps - pretrain_steps - 1) // feedback_every + 1)
+    return int(np.sum(session_sizes[:n_sessions]))
+
+
+TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher's, --teacher-* here
+
+
 def resolve(args: Args) -> Args:
-    """Fill every field left None from the task's preset; a flag the user gave wins."""
+    """Fill every field left None from the task's preset and the teacher's; a flag the user gave wins."""
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
+    if args.teacher in TEACHERS:  # an unknown one is check_args' to report
+        teacher = make_teacher(args.teacher)
+        preset = preset | {f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}
     for key, value in preset.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
@@ -432,7 +490,8 @@ def check_args(args: Args, episode_len: int) -> str | None:
          "--hidden-dim, --num-layers, --batch-size, --reward-batch-size and --reward-ensemble-size must be >= 1"),
         (min(args.eval_every, args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
          "--eval-every, --eval-episodes, --knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
-        (args.learning_rate > 0 and args.reward_lr > 0, "--learning-rate and --reward-lr must be > 0"),
+        (min(args.learning_rate, args.alpha_lr, args.reward_lr) > 0,
+         "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
         (0 < args.gamma <= 1 and 0 < args.tau <= 1, "--gamma and --tau must be in (0, 1]"),
         (args.init_temperature > 0, f"--init-temperature must be > 0, got {args.init_temperature}"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
@@ -545,6 +604,10 @@ def resumed_args(args: Args) -> Args:
     with open(os.path.join(args.resume, "config.json")) as f:
         saved = json.load(f)
     defaults = Args()
+    missing = [field.name for field in fields(Args) if field.name not in saved]
+    if missing:
+        raise ValueError(f"--resume {args.resume!r}: its config.json has no {', '.join(missing)} (written by an older "
+                         "pebble.py, whose run this one cannot continue); start a new run")
     for field in fields(Args):
         given = getattr(args, field.name)
         if field.name not in RESUME_MAY_CHANGE and given not in (getattr(defaults, field.name), saved[field.name]):
@@ -673,8 +736,9 @@ if __name__ == "__main__":
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
-    # Seeding: numpy (pairs, teacher via its own seed), torch (networks, batches), environments
-    rng = np.random.default_rng(args.seed)
+    # Seeding: numpy (pairs and teacher, independent streams), torch (networks, batches), environments
+    sampler_seed, teacher_seed = numpy_seeds(args.seed)
+    rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
     # MuJoCo's float64 states cast to float32 give denormal numbers (tiny velocities), which make
     # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
@@ -692,17 +756,20 @@ if __name__ == "__main__":
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate)
     critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
-    alpha_optimizer = torch.optim.Adam([log_alpha], lr=args.learning_rate)
+    alpha_optimizer = torch.optim.Adam([log_alpha], lr=args.alpha_lr)
     target_entropy = -float(action_dim)
     buffer = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device)
     intrinsic_stats = RunningMeanStd()
 
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    teacher = make_teacher(args.teacher, seed=args.seed, **{k: v for k, v in {
-        "beta": args.teacher_beta, "gamma": args.teacher_gamma, "eps_mistake": args.teacher_eps_mistake,
-        "eps_skip": args.teacher_eps_skip, "eps_equal": args.teacher_eps_equal}.items() if v is not None})
+    teacher = make_teacher(args.teacher, seed=teacher_seed,
+                           **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
+    spent = labels_spent(args.total_timesteps, args.seed_steps + args.unsup_steps, args.feedback_every, session_sizes)
+    if spent < args.max_feedback and not args.ground_truth_reward:
+        print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
+              f"steps (sessions from step {args.seed_steps + args.unsup_steps + 1}, every {args.feedback_every} steps)")
     preference_inputs0, preference_inputs1, preference_y, labelled_features = [], [], [], []
     feedback_used = sessions_done = 0
     if args.labels_from and not args.resume:  # earlier labels: free, not counted in this run's budget
@@ -715,11 +782,12 @@ if __name__ == "__main__":
     def sac_update(reward_source: str) -> dict:
         """One SAC step (appendix Eqs. (6)-(7), learned temperature) on a batch whose reward is the learned r_hat, the
         true reward (--ground-truth-reward) or the kNN state entropy (pre-training, Algorithm 2)."""
-        obs, actions, rewards, next_obs, terminated = buffer.sample(args.batch_size)
+        batch = buffer.sample(args.batch_size)
+        obs, actions, rewards, next_obs, terminated = batch
         if reward_source == "intrinsic":
             global overhead_seconds
             knn_start = time.perf_counter()
-            rewards = knn_distance(next_obs, buffer.obs[: buffer.size], args.knn_k)
+            rewards = intrinsic_reward(batch, buffer, args.knn_k)
             intrinsic_stats.update(rewards)
             rewards = rewards / max(intrinsic_stats.std, 1e-8)
             overhead_seconds += time.perf_counter() - knn_start
@@ -850,7 +918,7 @@ if __name__ == "__main__":
     episode_start, episode_steps, episode_return = 0, 0, 0.0
     reward_ready, last_eval, sac_steps = False, float("nan"), 0  # reward_ready: SAC uses buffer.rewards
     counts = dict(updates_on_knn_reward=0, updates_on_learned_reward=0, relabels=0, critic_resets=0)
-    overhead_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling
+    overhead_seconds = 0.0  # time in PEBBLE's own parts: kNN reward, queries, reward learning, relabelling, r_hat
     eval_log = []  # the rows of eval.csv
 
     def learner_state() -> dict:
@@ -926,15 +994,17 @@ if __name__ == "__main__":
             if (not args.ground_truth_reward and global_step >= next_feedback_step
                     and sessions_done < len(session_sizes) and usable_episodes()):
                 session_start = time.perf_counter()
-                if feedback_session(int(session_sizes[sessions_done]), first=not reward_ready):
+                learned = feedback_session(int(session_sizes[sessions_done]), first=not reward_ready) > 0
+                if learned:
                     relabel(buffer, reward_model)
                     counts["relabels"] += 1
-                    if not reward_ready:
-                        reset_critic()
-                    reward_ready = True
+                session_seconds = time.perf_counter() - session_start
+                overhead_seconds += session_seconds
+                writer.add_scalar("time/feedback_session_seconds", session_seconds, global_step)
+                if learned and not reward_ready:
+                    reset_critic()  # not timed: SAC updates, which the --ground-truth-reward run makes too
+                reward_ready = reward_ready or learned
                 next_feedback_step = global_step + args.feedback_every
-                overhead_seconds += time.perf_counter() - session_start
-                writer.add_scalar("time/feedback_session_seconds", time.perf_counter() - session_start, global_step)
 
             if global_step <= args.seed_steps:
                 action = env.action_space.sample()

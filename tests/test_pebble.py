@@ -10,6 +10,8 @@ import pytest
 import torch
 
 import pebble
+from samplers import schedule_sizes
+from sim_teacher import make_teacher
 from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
@@ -30,6 +32,21 @@ def test_knn_distance_is_kth_neighbour_not_counting_the_state_itself():
     assert distances[:, 0].tolist() == [3.0, 2.0, 3.0, 4.0, 7.0]
 
 
+def test_intrinsic_reward_scores_the_batch_state_s_t_not_the_next_state():
+    buffer = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1, device="cpu")
+    trajectory = [0.0, 1.0, 3.0, 6.0, 10.0, 15.0]  # s_0 .. s_5: transitions (s_t, s_t+1), s_5 never stored as obs
+    for s, s_next in zip(trajectory, trajectory[1:]):
+        buffer.add(np.array([s], np.float32), np.zeros(1, np.float32), 0.0, 0.0, np.array([s_next], np.float32), False)
+    # k = 2 among the stored states {0, 1, 3, 6, 10}, the state's own zero distance skipped (as in the test above)
+    expected = {0.0: 3.0, 1.0: 2.0, 3.0: 3.0, 6.0: 4.0, 10.0: 7.0}
+    # scoring next_obs would give 2, 3, 4, 7 for these states and 12 for s_4 (s_5 = 15 is not in the buffer)
+    torch.manual_seed(0)
+    batch = buffer.sample(20)
+    rewards = pebble.intrinsic_reward(batch, buffer, k=2)
+    assert rewards[:, 0].tolist() == [expected[s] for s in batch.obs[:, 0].tolist()]
+    assert not torch.equal(rewards, pebble.knn_distance(batch.next_obs, buffer.obs[: buffer.size], k=2))
+
+
 def test_running_mean_std_matches_numpy_over_all_batches():
     rng = np.random.default_rng(0)
     batches = [rng.normal(3.0, 2.0, size=n) for n in (5, 100, 1, 37)]
@@ -40,6 +57,100 @@ def test_running_mean_std_matches_numpy_over_all_batches():
     assert stats.mean == pytest.approx(everything.mean(), rel=1e-9)
     assert stats.var == pytest.approx(everything.var(), rel=1e-9)
     assert stats.count == len(everything)
+
+
+def assert_orthogonal_with_zero_biases(state_dict: dict, atol: float = 1e-5, bias_atol: float = 0.0):
+    """Every Linear weight W (out x in) has orthonormal rows (W W^T = I, out <= in) or columns (W^T W = I),
+    and every bias is zero (within bias_atol)."""
+    weights = {k: v for k, v in state_dict.items() if k.endswith(".weight")}
+    assert weights
+    for name, w in weights.items():
+        gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+        torch.testing.assert_close(gram, torch.eye(len(gram)), atol=atol, rtol=0, msg=name)
+        assert state_dict[name.removesuffix("weight") + "bias"].abs().max() <= bias_atol, name
+
+
+@pytest.mark.parametrize("obs_dim, action_dim, hidden_dim, num_layers", [(24, 6, 64, 2), (100, 4, 32, 3)])
+def test_actor_and_critic_start_orthogonal_with_zero_biases(obs_dim, action_dim, hidden_dim, num_layers):
+    torch.manual_seed(0)  # (100, 4, 32, 3): first layers wider in than out, so both Gram forms are checked
+    assert_orthogonal_with_zero_biases(pebble.Actor(obs_dim, action_dim, hidden_dim, num_layers).state_dict())
+    assert_orthogonal_with_zero_biases(pebble.TwinCritic(obs_dim, action_dim, hidden_dim, num_layers).state_dict())
+    default = torch.nn.Linear(hidden_dim, hidden_dim)  # PyTorch's own init is far from orthogonal
+    assert not torch.allclose(default.weight @ default.weight.T, torch.eye(hidden_dim), atol=1e-2)
+
+
+def test_query_sampler_and_teacher_draw_independent_streams_from_one_seed():
+    sampler_seed, teacher_seed = pebble.numpy_seeds(1)
+    sampler_draws = np.random.default_rng(sampler_seed).random(5)
+    teacher_draws = make_teacher("stoc", seed=teacher_seed).rng.random(5)
+    assert not np.any(sampler_draws == teacher_draws)
+    # one seed for both, as before, gave the teacher the sampler's very numbers
+    np.testing.assert_array_equal(np.random.default_rng(1).random(5), make_teacher("stoc", seed=1).rng.random(5))
+    again = pebble.numpy_seeds(1)  # reproducible from the run seed, and another seed gives other streams
+    np.testing.assert_array_equal(np.random.default_rng(again[0]).random(5), sampler_draws)
+    np.testing.assert_array_equal(make_teacher("stoc", seed=again[1]).rng.random(5), teacher_draws)
+    assert not np.any(np.random.default_rng(pebble.numpy_seeds(2)[0]).random(5) == sampler_draws)
+
+
+def test_labels_spent_counts_the_sessions_that_fit_before_the_end():
+    sizes = np.array([5, 5, 5, 5, 5])
+    # sessions at steps 11, 41, 71 (101 is past the end): 3 x 5
+    assert pebble.labels_spent(100, 10, 30, sizes) == 15
+    assert pebble.labels_spent(71, 10, 30, sizes) == 15  # a session on the last step still happens
+    assert pebble.labels_spent(70, 10, 30, sizes) == 10
+    assert pebble.labels_spent(10_000, 10, 30, sizes) == 25  # never more than the schedule's budget
+    assert pebble.labels_spent(100, 10, 30, np.array([8, 4, 2, 1])) == 14  # a decaying schedule: its first 3
+
+
+@pytest.mark.parametrize("schedule", ["uniform", "decay", "increase"])
+def test_presets_spend_their_whole_budget(schedule):
+    pretrain = pebble.Args.seed_steps + pebble.Args.unsup_steps
+    for preset in (pebble.METAWORLD_PRESET, pebble.DMC_PRESET, pebble.PRESETS["quadruped-walk"]):
+        sizes = schedule_sizes(schedule, preset["max_feedback"], preset["feedback_per_session"])
+        spent = pebble.labels_spent(preset["total_timesteps"], pretrain, preset["feedback_every"], sizes)
+        assert spent == preset["max_feedback"]  # Meta-World: 10,000 in 200 sessions; walker-walk: 1000
+    # the paper's (and reference code's) every 5000 steps on Meta-World: 198 sessions of 50 fit in 1M steps
+    assert pebble.labels_spent(1_000_000, pretrain, 5000, schedule_sizes("uniform", 10_000, 50)) == 9900
+
+
+def reset_draws(env, n: int) -> np.ndarray:
+    """The random vector of n resets: Meta-World's task variation (object and goal positions; MT1's 50 tasks are
+    50 fixed ones). Button-press moves its goal with it, sweep-into only its object."""
+    draws = []
+    for _ in range(n):
+        obs, _ = env.reset()
+        draws.append(env.unwrapped._last_rand_vec.copy())
+        np.testing.assert_allclose(obs[-3:], env.unwrapped._target_pos, atol=1e-6)  # the goal is observed
+    return np.array(draws)
+
+
+@pytest.mark.parametrize("env_id", ["button-press", "sweep-into"])
+def test_metaworld_train_and_eval_goals_are_fresh_draws_from_the_whole_range(env_id):
+    from scipy import stats
+
+    n = 100
+    train = reset_draws(pebble.make_env(env_id, seed=1)[0], n)
+    evaluation = reset_draws(pebble.make_env(env_id, seed=1 + 10_000)[0], n)  # the run's evaluation env
+    # a fresh draw at every reset: MT1 alone draws from 50 fixed vectors, other ones for the eval env's seed
+    assert len(np.unique(train, axis=0)) == len(np.unique(evaluation, axis=0)) == n
+    space = pebble.make_env(env_id, seed=1)[0].unwrapped._random_reset_space
+    for draws in (train, evaluation):
+        assert np.all((space.low <= draws) & (draws <= space.high))
+    for i in np.flatnonzero(space.high > space.low):  # each coordinate that varies: uniform over its whole range
+        # (sweep-into redraws objects within 0.15 of its goal, about 1% of the range: within the tolerance)
+        uniform = stats.uniform(space.low[i], space.high[i] - space.low[i]).cdf
+        assert stats.kstest(train[:, i], uniform).pvalue > 0.001
+        assert stats.kstest(evaluation[:, i], uniform).pvalue > 0.001
+        assert stats.ks_2samp(train[:, i], evaluation[:, i]).pvalue > 0.001  # one distribution for both envs
+        width = space.high[i] - space.low[i]  # and both samples span nearly all of it
+        assert train[:, i].max() - train[:, i].min() > 0.9 * width
+        assert evaluation[:, i].max() - evaluation[:, i].min() > 0.9 * width
+
+
+def test_metaworld_goals_are_reproducible_from_the_seed():
+    first, again, other = (reset_draws(pebble.make_env("button-press", seed)[0], 5) for seed in (3, 3, 4))
+    np.testing.assert_array_equal(first, again)
+    assert not np.any(np.all(first == other, axis=1))
 
 
 def test_relabel_covers_the_whole_wrapped_buffer():
@@ -103,6 +214,13 @@ def test_train_reward_learns_a_separable_preference():
     assert np.corrcoef(learned.numpy(), held_out[:, 0, 0].numpy())[0, 1] > 0.8
 
 
+def test_resolved_configuration_records_every_field_of_the_teacher():
+    myopic = pebble.resolve(pebble.Args(env_id="Pendulum-v1", teacher="myopic", teacher_eps_mistake=0.1))
+    resolved = {name: getattr(myopic, f"teacher_{name}") for name in pebble.TEACHER_FIELDS}
+    assert resolved == {"beta": math.inf, "gamma": 0.9, "eps_mistake": 0.1, "eps_skip": 0.0, "eps_equal": 0.0}
+    assert pebble.resolve(pebble.Args(env_id="Pendulum-v1", teacher="skip")).teacher_eps_skip == 0.1
+
+
 # ---------------------------------------------------------------- smoke runs that reach every phase
 
 
@@ -141,6 +259,7 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
         np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
     config = json.loads((out / "config.json").read_text())
     assert config["learning_rate"] == 5e-4  # walker-walk preset fills what was not given
+    assert config["teacher_beta"] == math.inf and config["teacher_gamma"] == 1.0  # the oracle's, resolved
 
 
 def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
@@ -165,7 +284,10 @@ PENDULUM = ["--env-id", "Pendulum-v1", "--total-timesteps", "1100", "--seed-step
 )
 def test_every_teacher_and_sampler_runs_a_full_schedule(tmp_path, teacher, sampler):
     out = tmp_path / f"{teacher}_{sampler}"
-    result = run_pebble(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler)
+    # skip: with eps_skip = 0.1, delta_skip (~ -6) is above nearly every 10-step Pendulum return, so whole
+    # sessions can be skipped by chance and the sampler never runs; 0.5 (~ -30) keeps about half
+    extra = ["--teacher-eps-skip", "0.5"] if teacher == "skip" else []
+    result = run_pebble(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler, *extra)
     assert result.returncode == 0, result.stderr[-3000:]
     assert finished_counts(result.stdout)["relabels"] == 3
     labels = saved_labels(out)
@@ -206,10 +328,25 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
     assert int(eval_rows(out)[-1]["feedback"]) == 0
 
 
+def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rate(tmp_path):
+    out = tmp_path / "run"  # a learning rate of 1e-12 leaves actor and critic where their init put them
+    result = run_pebble(out, *PENDULUM, "--learning-rate", "1e-12", "--checkpoint-every", "1100")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert finished_counts(result.stdout)["critic_resets"] == 1  # the checkpoint's critic is the reset one
+    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    for name in ("actor", "critic", "critic_target"):
+        assert_orthogonal_with_zero_biases(saved[name], atol=1e-6, bias_atol=1e-6)
+    lrs = {name: saved[f"{name}_optimizer"]["param_groups"][0]["lr"] for name in ("actor", "critic", "alpha")}
+    assert lrs == {"actor": 1e-12, "critic": 1e-12, "alpha": 1e-4}  # --alpha-lr's default, reference code
+    assert abs(saved["log_alpha"].item() - math.log(0.1)) > 1e-3  # the temperature did learn at 1e-4
+    assert json.loads((out / "config.json").read_text())["alpha_lr"] == 1e-4
+
+
 def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
     flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy"]
     first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
     assert first.returncode == second.returncode == 0
+    assert "note: only 20 of the 30 labels of --max-feedback fit in 800 steps" in first.stdout  # sessions at 401, 701
     assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
 
 
@@ -232,7 +369,8 @@ BAD_INPUTS = [
     (["--total-timesteps", "500"], "--total-timesteps (500) must exceed"),
     (["--feedback-every", "0"], "--feedback-every must be >= 1"),
     (["--label-smoothing", "1"], "--label-smoothing must be in [0, 1)"),
-    (["--learning-rate", "0"], "--learning-rate and --reward-lr must be > 0"),
+    (["--learning-rate", "0"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
+    (["--alpha-lr", "-1e-4"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
 ]
 
 

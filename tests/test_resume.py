@@ -2,6 +2,7 @@
 and SIGTERM (compared with the uninterrupted run of the same seed), atomic checkpoint writes, --labels-from,
 non-finite stops and output-directory failures."""
 
+import json
 import resource
 import signal
 import subprocess
@@ -234,6 +235,16 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
     assert result.returncode == 2 and "error: --seed cannot change when resuming" in result.stderr
     result = run_script(script, tmp_path / "x", "--resume", str(tmp_path))
     assert result.returncode == 2 and "no checkpoint.pt there" in result.stderr
+    if script == "pebble.py":  # a run of an older pebble.py, saved before --alpha-lr existed
+        older = tmp_path / "older"
+        older.mkdir()
+        (older / "checkpoint.pt").write_bytes(b"")
+        config = json.loads((existing / "config.json").read_text())
+        del config["alpha_lr"]
+        (older / "config.json").write_text(json.dumps(config))
+        result = run_script(script, tmp_path / "x", "--resume", str(older))
+        assert result.returncode == 2 and "Traceback" not in result.stderr
+        assert "its config.json has no alpha_lr (written by an older pebble.py" in result.stderr
 
 
 def limit_file_size():
