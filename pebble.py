@@ -219,9 +219,11 @@ def make_env(env_id: str, seed: int, render_mode: str | None = None) -> tuple[gy
         env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3", seed=seed, render_mode=render_mode)
         env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: fixed 500-step episodes
         # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not
-        # one of MT1's 50 fixed goals. One task is set for its settings (goal observable); then the random vector
-        # (object and goal positions) is unfrozen and drawn from the env's own generator, seeded by `seed`
+        # one of MT1's 50 fixed goals. One task is set for its settings; then the random vector (object and goal
+        # positions) is unfrozen and drawn from the env's own generator, seeded by `seed`. The goal is hidden (its
+        # 3 entries are zeros), as in the reference's v2 envs, which were partially observable by default
         env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
+        env.unwrapped._partially_observable = True
         env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
         env.unwrapped._freeze_rand_vec = False
         env.unwrapped.seeded_rand_vec = True
