@@ -241,8 +241,9 @@ def load_spec(root: Path) -> dict:
 
 
 def save_spec(root: Path, spec: dict):
-    tmp = root / "grid.json.tmp"
-    tmp.write_text(json.dumps({"runs": spec}, indent=1))
+    tmp = root / "grid.json.tmp"  # one run a line
+    lines = ",\n".join(f"  {json.dumps(name)}: {json.dumps(entry)}" for name, entry in spec.items())
+    tmp.write_text(f'{{"runs": {{\n{lines}\n}}}}\n')
     os.replace(tmp, root / "grid.json")
 
 
@@ -326,7 +327,8 @@ class Progress:
         with self.lock:
             self.last_print = time.time()
             left = self.time_left()
-            left_text = "-" if left is None else f"{left / 3600:.1f} h" if left > 5400 else f"{left / 60:.0f} min"
+            left_text = ("-" if left is None else f"{left / 3600:.1f} h" if left > 5400 else f"{left / 60:.0f} min"
+                         if left > 90 else f"{left:.0f} s")
             print(f"[grid {time.strftime('%H:%M:%S')}] {self.done + self.skipped}/{self.total} done "
                   f"({self.skipped} before), {len(self.running)} running, {len(self.failed)} failed, {self.waiting} "
                   f"waiting | {(time.time() - self.started_at) / 60:.1f} min | time left ~{left_text}", flush=True)
