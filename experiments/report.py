@@ -255,12 +255,14 @@ def bar_figures(rows: list[dict], x: str, hue: str, fixed: tuple[str, ...], out:
         figures[tuple(row[c] for c in fixed)][tuple(row[c] for c in panels_by)][(row[x], row[hue])] = row["iqm"]
     paths = []
     for fixed_values, panels in sorted(figures.items()):
-        xs = sorted({k[0] for cells in panels.values() for k in cells}, key=teacher_order if x == "teacher" else str)
+        order = teacher_order if x == "teacher" else str
+        widest = max(len({k[0] for k in cells}) for cells in panels.values())
         hues = sorted({k[1] for cells in panels.values() for k in cells})
-        plt, fig, axes = plt_figure(len(panels), 1, max(6.0, 1.1 * len(xs) * max(1, len(hues)) ** 0.5 + 2),
+        plt, fig, axes = plt_figure(len(panels), 1, max(6.0, 1.1 * widest * max(1, len(hues)) ** 0.5 + 2),
                                     2.8 * len(panels) + 0.6)
         width = 0.8 / len(hues)
         for ax, (panel, cells) in zip(axes[:, 0], sorted(panels.items())):
+            xs = sorted({k[0] for k in cells}, key=order)
             for j, hue_value in enumerate(hues):
                 present = [(i, cells[(x_value, hue_value)]) for i, x_value in enumerate(xs) if (x_value, hue_value) in cells]
                 if not present:
@@ -268,7 +270,7 @@ def bar_figures(rows: list[dict], x: str, hue: str, fixed: tuple[str, ...], out:
                 positions = [i - 0.4 + width * (j + 0.5) for i, _ in present]
                 points = np.array([p for _, (p, _, _) in present])
                 errors = np.array([[p - low, high - p] for _, (p, low, high) in present]).T
-                ax.bar(positions, points, width, yerr=errors, capsize=3, label=str(hue_value))
+                ax.bar(positions, points, width, yerr=errors, capsize=3, label=str(hue_value), color=f"C{j}")
             ax.axhline(1.0, color="gray", linestyle="--", linewidth=0.8)
             ax.set_xticks(range(len(xs)), xs)
             ax.set_ylabel("IQM normalised return")
@@ -302,9 +304,10 @@ def curve_figures(runs: list[Run], out: Path) -> list[Path]:
                 steps = sorted(set.intersection(*[{row["step"] for row in r.rows} for r in group]))
                 values = np.array([[{row["step"]: row[r.metric] for row in r.rows}[s] for s in steps] for r in group])
                 mean, std = values.mean(0), values.std(0)
-                style = dict(color="black", linestyle="--") if setting[2] == GROUND_TRUTH else {}
-                line, = ax.plot(steps, mean, label=f"{setting[2]} ({len(group)})", **style)
-                ax.fill_between(steps, mean - std, mean + std, alpha=0.15, color=line.get_color())
+                # a teacher keeps its colour in every panel and figure; the ground-truth runs are black and dashed
+                color, style = ("black", "--") if setting[2] == GROUND_TRUTH else (f"C{teacher_order(setting[2])[0]}", "-")
+                ax.plot(steps, mean, label=f"{setting[2]} ({len(group)})", color=color, linestyle=style)
+                ax.fill_between(steps, mean - std, mean + std, alpha=0.15, color=color)
             ax.set_xlabel("environment steps")
             ax.set_ylabel(group[0].metric.replace("_", " "))
             ax.set_title(f"budget {panel[0]}, sampler {panel[1]}, schedule {panel[2]}", fontsize=9)
@@ -527,9 +530,10 @@ def report(args: Args) -> Path:
                          "wall_minutes": last.get("wall_time", float("nan")) / 60 if last else None,
                          "overhead_share": overhead})
     lines += ["## Runs", ""]
-    lines += table(["run", "seed", "state", "step", "final score", "normalised", "mean over evaluations",
-                    "final reward_correlation", "wall time (min)", "overhead share"],
-                   [[f"`{row['run']}`", row["seed"], row["state"], row["step"], fmt(row["score"]), fmt(row["normalized"]),
+    lines += table(["run", "algorithm", "task", "teacher", "seed", "state", "step", "final score", "normalised",
+                    "mean over evaluations", "final reward_correlation", "wall time (min)", "overhead share"],
+                   [[f"`{row['run']}`", row["algorithm"], row["task"], row["teacher"], row["seed"], row["state"],
+                     row["step"], fmt(row["score"]), fmt(row["normalized"]),
                      fmt(row["mean_over_evaluations"]), fmt(row["reward_correlation"]), fmt(row["wall_minutes"]),
                      fmt(row["overhead_share"])] for row in run_rows])
     lines.append("")
