@@ -26,7 +26,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -90,9 +90,10 @@ class Grid:
 # Presets: `python experiments/grid.py NAME [overrides]`; `custom` is the bare grid
 MINI_BPREF = Grid(
     env_ids=("walker-walk",), budgets=("300/30",), seeds=(1, 2, 3), root="runs/mini-bpref",
-    # 50K steps, 128 x 2 networks, pre-training until 5K, 10 sessions of 30 queries every 4500 steps (5001 ... 45501)
-    flags="--total-timesteps 50000 --hidden-dim 128 --num-layers 2 --batch-size 128 --unsup-steps 4000 "
-          "--feedback-every 4500 --reward-epochs 20 --eval-every 5000 --eval-episodes 10 --checkpoint-every 10000")
+    # 40K steps, 128 x 2 networks, pre-training until 5K, 10 sessions of 30 queries every 3500 steps (5001 ... 36501),
+    # at most 20 reward epochs per session (paper: 50); the rest as the walker-walk preset (docs/experiments.md)
+    flags="--total-timesteps 40000 --hidden-dim 128 --num-layers 2 --batch-size 128 --unsup-steps 4000 "
+          "--feedback-every 3500 --reward-epochs 20 --eval-every 5000 --eval-episodes 10 --checkpoint-every 10000")
 PRESETS = {
     "custom": ("a grid of your own (defaults: PEBBLE, walker-walk, six teachers, the task's budget, 3 seeds)", Grid()),
     "mini-bpref": ("PEBBLE on walker-walk at CPU size: six teachers + ground truth, 3 seeds, about 2 h on 2 cores "
@@ -124,7 +125,7 @@ class Run:
         """The script and its flags (run with the Python of the machine that runs it); the same flags again on resume,
         which the scripts accept as they equal the saved configuration."""
         # a resumed run takes its directory from --resume (the folder may have moved since)
-        return [str(ROOT / f"{self.algorithm}.py"), *self.flags, *(["--resume" if resume else "--output-dir", str(run_dir)])]
+        return [str(ROOT / f"{self.algorithm}.py"), *self.flags, "--resume" if resume else "--output-dir", str(run_dir)]
 
 
 def parse_budget(budget: str) -> list[str]:
@@ -382,7 +383,8 @@ def run_grid(grid: Grid) -> int:
             note = {"resumable": f"resume ({detail})", "partial": f"start afresh, moving the partial run aside "
                     f"({detail})", "new": "start"}[state]
             command = shlex.join(["python", *run.command(root / run.name, resume)])
-            print(f"# {note}: {run.name}\nOMP_NUM_THREADS={threads} {command} >> {shlex.quote(str(logs[run.name]))} 2>&1")
+            log = shlex.quote(str(logs[run.name]))
+            print(f"# {note}: {run.name}\nOMP_NUM_THREADS={threads} {command} >> {log} 2>&1")
         return 0
 
     (root / "logs").mkdir(parents=True, exist_ok=True)

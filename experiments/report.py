@@ -11,6 +11,7 @@ mean of the same over the finished --ground-truth-reward runs of the same algori
 import csv
 import functools
 import importlib
+import inspect
 import json
 import sys
 import warnings
@@ -264,7 +265,8 @@ def bar_figures(rows: list[dict], x: str, hue: str, fixed: tuple[str, ...], out:
         for ax, (panel, cells) in zip(axes[:, 0], sorted(panels.items())):
             xs = sorted({k[0] for k in cells}, key=order)
             for j, hue_value in enumerate(hues):
-                present = [(i, cells[(x_value, hue_value)]) for i, x_value in enumerate(xs) if (x_value, hue_value) in cells]
+                present = [(i, cells[(x_value, hue_value)]) for i, x_value in enumerate(xs)
+                           if (x_value, hue_value) in cells]
                 if not present:
                     continue
                 positions = [i - 0.4 + width * (j + 0.5) for i, _ in present]
@@ -305,7 +307,8 @@ def curve_figures(runs: list[Run], out: Path) -> list[Path]:
                 values = np.array([[{row["step"]: row[r.metric] for row in r.rows}[s] for s in steps] for r in group])
                 mean, std = values.mean(0), values.std(0)
                 # a teacher keeps its colour in every panel and figure; the ground-truth runs are black and dashed
-                color, style = ("black", "--") if setting[2] == GROUND_TRUTH else (f"C{teacher_order(setting[2])[0]}", "-")
+                truth = setting[2] == GROUND_TRUTH
+                color, style = ("black", "--") if truth else (f"C{teacher_order(setting[2])[0]}", "-")
                 ax.plot(steps, mean, label=f"{setting[2]} ({len(group)})", color=color, linestyle=style)
                 ax.fill_between(steps, mean - std, mean + std, alpha=0.15, color=color)
             ax.set_xlabel("environment steps")
@@ -321,32 +324,53 @@ def curve_figures(runs: list[Run], out: Path) -> list[Path]:
     return paths
 
 
-def reward_alignment(run: Run) -> tuple[np.ndarray, np.ndarray]:
-    """True and learned rewards (the ensemble mean) at each step of one mean-action episode of the run's final policy,
-    in its evaluation environment (seed + 10000), rebuilt with the run's own script as a module from config.json."""
+def build(cls, obs_dim: int, action_dim: int, config: dict, **named):
+    """cls(obs_dim, action_dim, ...) with its other constructor arguments from `named` or, by name, config.json."""
+    arguments = list(inspect.signature(cls).parameters)[2:]
+    return cls(obs_dim, action_dim, **{a: named[a] if a in named else config[a] for a in arguments
+                                       if a in named or a in config})
+
+
+def load_final_model(run: Run) -> tuple:
+    """(the run's script as a module, a fresh evaluation environment made as the script makes it,
+    the final actor, the reward ensemble, the observation normaliser or None): final_model.pt in networks of the
+    sizes in config.json."""
     import torch
 
     module, config = importlib.import_module(run.algorithm), run.config
+    seed = config["seed"] + 10_000  # the scripts' evaluation seed; a script that derives its seeds says so:
+    if hasattr(module, "run_seeds"):
+        seed = module.run_seeds(config["seed"], config["num_envs"])["eval"]
     with warnings.catch_warnings(action="ignore"):  # Gymnasium's notes on float64 bounds, as in the scripts' runs
-        env, _ = module.make_env(config["env_id"], config["seed"] + 10_000)
+        env, _ = module.make_env(config["env_id"], seed)
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     saved = torch.load(run.path / "final_model.pt", map_location="cpu", weights_only=False)
-    actor = module.Actor(obs_dim, action_dim, config["hidden_dim"], config["num_layers"])
+    actor = build(module.Actor, obs_dim, action_dim, config)
     actor.load_state_dict(saved["actor"])
-    reward_model = module.RewardEnsemble(obs_dim, action_dim, config["reward_ensemble_size"])
+    reward_model = build(module.RewardEnsemble, obs_dim, action_dim, config, size=config["reward_ensemble_size"])
     reward_model.load_state_dict(saved["reward_model"])
-    if run.algorithm == "prefppo":  # the policy sees normalised observations, the reward model raw ones
+    obs_stats = None
+    if "obs_mean" in saved:  # prefppo: the policy sees normalised observations, the reward model raw ones
         obs_stats = module.RunningMeanStd(obs_dim)
         obs_stats.mean, obs_stats.var = saved["obs_mean"], saved["obs_var"]
-        policy = lambda obs: actor.mean(torch.as_tensor(obs_stats.normalize(obs))).clamp(-1, 1)  # noqa: E731
-    else:
-        policy = lambda obs: actor.act(torch.as_tensor(obs)[None])[0]  # noqa: E731
+    return module, env, actor, reward_model, obs_stats
+
+
+def reward_alignment(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """True and learned rewards (the ensemble mean) at each step of the first mean-action episode of the run's final
+    policy in a fresh evaluation environment: the policy and reward inputs of the scripts' evaluate()."""
+    import torch
+
+    _, env, actor, reward_model, obs_stats = load_final_model(run)
     true_rewards, learned_rewards = [], []
     obs, _ = env.reset()
     done = False
     with torch.no_grad():
         while not done:
-            action = policy(obs)
+            if obs_stats is None:
+                action = actor.act(torch.as_tensor(obs)[None])[0]
+            else:
+                action = actor.mean(torch.as_tensor(obs_stats.normalize(obs))).clamp(-1, 1)
             learned_rewards.append(reward_model(torch.cat([torch.as_tensor(obs), action])).mean().item())
             obs, reward, terminated, truncated, _ = env.step(action.numpy())
             true_rewards.append(float(reward))
@@ -462,9 +486,11 @@ def report(args: Args) -> Path:
 
     figures = bar_figures(settings, "teacher", "algorithm", ("task",), out, "figure2",
                           "IQM normalised return per teacher")
-    for column in ("sampler", "schedule", "budget"):
-        varied = [row for row in settings
-                  if len({r[column] for r in settings if r["algorithm"] == row["algorithm"] and r["task"] == row["task"]}) > 1]
+    for column in ("sampler", "schedule", "budget"):  # compared where an algorithm ran a task with several
+        values = defaultdict(set)
+        for row in settings:
+            values[row["algorithm"], row["task"]].add(row[column])
+        varied = [row for row in settings if len(values[row["algorithm"], row["task"]]) > 1]
         figures += bar_figures(varied, "teacher", column, ("algorithm", "task"), out, f"{column}s",
                                f"IQM normalised return per {column}")
     figures += curve_figures(runs, out)
@@ -508,7 +534,8 @@ def report(args: Args) -> Path:
                         for key, scores in sorted(baselines.items())])
         lines.append("")
     for title, notes in (("Not normalisable", problems), ("Settings that mix configurations", mixed),
-                         ("Not aggregated across tasks", across_notes), ("Reward alignment not plotted", alignment_notes)):
+                         ("Not aggregated across tasks", across_notes),
+                         ("Reward alignment not plotted", alignment_notes)):
         if notes:
             lines += [f"## {title}", "", *[f"- {note}" for note in notes], ""]
     if figures or alignments:
@@ -525,7 +552,7 @@ def report(args: Args) -> Path:
         run_rows.append({"run": relative(run.path), **dict(zip(SETTING, run.setting)), "seed": run.config["seed"],
                          "state": run.state, "step": int(last.get("step", 0)), "metric": run.metric,
                          "score": run.score, "normalized": run.normalized,
-                         "mean_over_evaluations": float(np.mean([r[run.metric] for r in run.rows])) if run.rows else None,
+                         "mean_over_evaluations": np.mean([r[run.metric] for r in run.rows]) if run.rows else None,
                          "reward_correlation": last.get("reward_correlation"),
                          "wall_minutes": last.get("wall_time", float("nan")) / 60 if last else None,
                          "overhead_share": overhead})

@@ -63,8 +63,9 @@ def local_grid(tmp_path_factory):
 
 def test_grid_is_the_cross_product_plus_one_ground_truth_run_per_algorithm_task_and_seed():
     spec = grid.Grid(algorithms=("pebble", "prefppo"), env_ids=("walker-walk", "button-press"),
-                     teachers=("oracle", "stoc", "mistake"), budgets=("1000/100", "500"), samplers=("uniform", "entropy"),
-                     schedules=("decay",), seeds=(1, 2, 3), flags="--hidden-dim 64", pebble_flags="--batch-size 64")
+                     teachers=("oracle", "stoc", "mistake"), budgets=("1000/100", "500"),
+                     samplers=("uniform", "entropy"), schedules=("decay",), seeds=(1, 2, 3), flags="--hidden-dim 64",
+                     pebble_flags="--batch-size 64")
     runs = grid.expand(spec)
     teacher_runs = [r for r in runs if "--ground-truth-reward" not in r.flags]
     truth_runs = [r for r in runs if "--ground-truth-reward" in r.flags]
@@ -226,29 +227,23 @@ def test_report_on_the_tiny_grid_writes_markdown_csv_and_pngs(local_grid, tmp_pa
 
 
 @pytest.mark.slow
-@pytest.mark.filterwarnings("ignore:.*precision lowered by casting to float32")  # Gymnasium, on Hopper's bounds
 @pytest.mark.parametrize("name", [TEACHER_RUNS[0], TEACHER_RUNS[4]], ids=["pebble", "prefppo"])
-def test_reward_alignment_replays_the_final_policy_as_the_scripts_evaluate_it(local_grid, name):
-    """The report rebuilds env, policy and reward model from config.json and final_model.pt; the scripts' own
-    evaluate() on the same networks and environment must see the same episode and correlation."""
+def test_reward_alignment_rebuilds_the_final_model_as_the_run_evaluated_it(local_grid, name):
+    """The report rebuilds env, policy and reward model from config.json and final_model.pt. Replayed with the
+    script's own evaluate(), the rebuilt run's evaluation episodes (one per row of eval.csv) end in the run's own
+    final evaluation; the report's alignment episode is the first of them, seen through the same policy."""
+    torch.set_num_threads(1)  # as the run had
     run = next(r for r in report.find_runs(local_grid[0], local_grid[0] / "report") if r.path.name == name)
+    module, env, actor, reward_model, obs_stats = report.load_final_model(run)
+    networks = (actor, reward_model) if module is pebble else (actor, obs_stats, reward_model)
+    replayed = [module.evaluate(*networks, env, 1, "cpu") for _ in grid.read_eval(run.path)]
+    final = grid.read_eval(run.path)[-1]
+    assert replayed[-1]["episode_return"] == pytest.approx(final["episode_return"], rel=1e-6)
+    assert replayed[-1]["reward_correlation"] == pytest.approx(final["reward_correlation"], rel=1e-5)
     true_rewards, learned_rewards = report.reward_alignment(run)
-    module, config = (pebble, run.config) if name.startswith("pebble") else (prefppo, run.config)
-    env, _ = module.make_env(config["env_id"], config["seed"] + 10_000)
-    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    saved = torch.load(run.path / "final_model.pt", weights_only=False)
-    actor = module.Actor(obs_dim, action_dim, config["hidden_dim"], config["num_layers"])
-    reward_model = module.RewardEnsemble(obs_dim, action_dim, config["reward_ensemble_size"])
-    actor.load_state_dict(saved["actor"])
-    reward_model.load_state_dict(saved["reward_model"])
-    if module is pebble:
-        result = pebble.evaluate(actor, reward_model, env, 1, "cpu")
-    else:
-        obs_stats = prefppo.RunningMeanStd(obs_dim)
-        obs_stats.mean, obs_stats.var = saved["obs_mean"], saved["obs_var"]
-        result = prefppo.evaluate(actor, obs_stats, reward_model, env, 1, "cpu")
-    assert true_rewards.sum() == pytest.approx(result["episode_return"], rel=1e-9)
-    assert np.corrcoef(true_rewards, learned_rewards)[0, 1] == pytest.approx(result["reward_correlation"], rel=1e-6)
+    assert true_rewards.sum() == pytest.approx(replayed[0]["episode_return"], rel=1e-9)
+    correlation = np.corrcoef(true_rewards, learned_rewards)[0, 1]
+    assert correlation == pytest.approx(replayed[0]["reward_correlation"], rel=1e-6)
 
 
 # ---------------------------------------------------------------- the report on a synthetic folder
@@ -282,7 +277,8 @@ def synthetic(tmp_path_factory):
     """walker-walk: ground truth 400, 600 (mean 500); oracle 100 ... 900 -> 0.2, 0.4, 0.6, 0.8, 1.0, 1.8; mistake 100,
     300 -> 0.2, 0.6; oracle with entropy sampling 500, 500 -> 1.0, 1.0. quadruped-walk: ground truth 100, 100; oracle
     10 ... 60 -> 0.1 ... 0.6. button-press (Meta-World: success rate; budget 10000/50): ground truth 0.8, 1.0;
-    oracle 0.45, 0.9 -> 0.5, 1.0. cheetah-run: oracle runs and no ground truth. One unfinished run, one planned and missing."""
+    oracle 0.45, 0.9 -> 0.5, 1.0. cheetah-run: oracle runs and no ground truth. One unfinished run, one planned and
+    missing."""
     root = tmp_path_factory.mktemp("synthetic") / "runs"
     for seed, value in enumerate([400, 600], 1):
         write_run(root, f"walker_truth_{seed}", "walker-walk", seed, value, truth=True)
@@ -371,7 +367,8 @@ def test_unfinished_and_missing_runs_are_listed_not_aggregated(synthetic):
 
 def test_sampler_comparison_and_figure_2_are_drawn(synthetic):
     out = synthetic[0] / "report"
-    for png in ("figure2_walker-walk", "figure2_button-press", "samplers_pebble_walker-walk", "curves_pebble_walker-walk"):
+    for png in ("figure2_walker-walk", "figure2_button-press", "samplers_pebble_walker-walk",
+                "curves_pebble_walker-walk"):
         assert (out / f"{png}.png").read_bytes()[:4] == b"\x89PNG"
     assert not (out / "samplers_pebble_quadruped-walk.png").exists()
 
