@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from grid import read_eval, run_state  # noqa: E402
-from sim_teacher import TEACHERS  # noqa: E402
+from sim_teacher import TEACHERS, make_teacher  # noqa: E402
 
 SETTING = ("algorithm", "task", "teacher", "budget", "sampler", "schedule")
 METRICS = ("iqm", "median", "mean", "optimality_gap")
@@ -87,13 +87,15 @@ def is_metaworld(env_id: str) -> bool:
 
 def setting_of(config: dict) -> tuple:
     """(algorithm, task, teacher, budget, sampler, schedule) of a run from its config.json; a teacher's overrides
-    are part of its name, and ground-truth runs have no teacher, budget, sampler or schedule."""
+    (--teacher-beta ... that differ from the named teacher's values) are part of its name, and ground-truth runs
+    have no teacher, budget, sampler or schedule."""
     algorithm = "prefppo" if "num_envs" in config else "pebble"
     task = config["env_id"].removesuffix("-v3") if is_metaworld(config["env_id"]) else config["env_id"]
     if config.get("ground_truth_reward"):
         return algorithm, task, GROUND_TRUTH, "-", "-", "-"
+    preset = make_teacher(config["teacher"])  # a saved value equal to the teacher's own is no override
     overrides = [f"{name.removeprefix('teacher_')}={config[name]}" for name in TEACHER_OVERRIDES
-                 if config.get(name) is not None]
+                 if config.get(name) is not None and config[name] != getattr(preset, name.removeprefix("teacher_"))]
     teacher = config["teacher"] + (f"({', '.join(overrides)})" if overrides else "")
     budget = f"{config['max_feedback']}/{config['feedback_per_session']}"
     return algorithm, task, teacher, budget, config["sampler"], config["schedule"]

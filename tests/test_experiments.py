@@ -373,6 +373,19 @@ def test_sampler_comparison_and_figure_2_are_drawn(synthetic):
     assert not (out / "samplers_pebble_quadruped-walk.png").exists()
 
 
+def test_a_teacher_is_named_with_the_overrides_that_change_it():
+    base = {"env_id": "walker-walk", "ground_truth_reward": False, "max_feedback": 500, "feedback_per_session": 50,
+            "sampler": "entropy", "schedule": "decay"}
+    # saved values equal to the named teacher's own (a script may save them resolved) are no override
+    assert report.setting_of({**base, "teacher": "oracle", "teacher_beta": float("inf"), "teacher_gamma": 1.0,
+                              "teacher_eps_mistake": 0.0}) == ("pebble", "walker-walk", "oracle", "500/50", "entropy",
+                                                               "decay")
+    assert report.setting_of({**base, "teacher": "myopic", "teacher_gamma": 0.9, "teacher_eps_mistake": 0.1,
+                              "num_envs": 8})[:3] == ("prefppo", "walker-walk", "myopic(eps_mistake=0.1)")
+    assert report.setting_of({**base, "teacher": "stoc", "ground_truth_reward": True})[2:] == ("ground-truth", "-",
+                                                                                                "-", "-")
+
+
 def test_report_on_a_folder_without_runs_is_one_error_line(tmp_path):
     result = run_report(tmp_path)
     message = f"error: no runs (folders with a config.json) below {tmp_path.resolve()}"
