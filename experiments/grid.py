@@ -262,13 +262,21 @@ def execute(command: list[str], log_path: str, threads: int, started=None) -> in
         if started:
             started(process)
         try:
-            code = process.wait()
+            while (code := process.poll()) is None:  # not wait(): Ray's cancel arrives between bytecodes only
+                time.sleep(0.5)
         except BaseException:
             process.send_signal(signal.SIGTERM)
-            process.wait()
+            log.write(f"=== interrupted: exit code {process.wait()} after {(time.time() - start) / 60:.1f} min\n")
             raise
         log.write(f"=== exit code {code} after {(time.time() - start) / 60:.1f} min\n")
     return code
+
+
+def execute_ray_task(command: list[str], log_path: str, threads: int) -> int:
+    """execute() as a Ray task. Ray cancels a running task with a SIGINT to its worker, which a worker started from a
+    background shell would ignore (it inherits SIG_IGN): restore Python's handler."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    return execute(command, log_path, threads)
 
 
 class Progress:
@@ -279,7 +287,7 @@ class Progress:
         self.waiting, self.skipped, self.failed = waiting, finished_before, list(refused)
         self.total = waiting + finished_before + len(refused)
         self.concurrency, self.every, self.logs = concurrency, every, logs
-        self.started_at, self.running, self.done, self.durations = time.time(), {}, 0, []
+        self.started_at, self.running, self.done, self.durations, self.interrupted = time.time(), {}, 0, [], []
         self.lock, self.last_print, self.cancelled = threading.Lock(), 0.0, False
 
     def start(self, name: str):
@@ -287,15 +295,20 @@ class Progress:
             self.waiting -= 1
             self.running[name] = time.time()
 
-    def end(self, name: str, failure: str | None):
+    def end(self, name: str, failure: str | None, interrupted: bool = False):
+        """A run ended: finished (no failure), failed, or stopped because the grid was interrupted."""
         with self.lock:
-            self.durations.append(time.time() - self.running.pop(name))
-            if failure:
+            duration = time.time() - self.running.pop(name)
+            if interrupted and failure:
+                self.interrupted.append(name)
+                print(f"interrupted: {name}: {failure}; the same grid command continues it", flush=True)
+            elif failure:
                 self.failed.append(name)
                 print(f"failed: {name}: {failure}; log {self.logs[name]}", flush=True)
             else:
                 self.done += 1
-                print(f"finished: {name} ({self.durations[-1] / 60:.1f} min)", flush=True)
+                self.durations.append(duration)
+                print(f"finished: {name} ({duration / 60:.1f} min)", flush=True)
         self.show(force=True)
 
     def fraction(self, name: str) -> float | None:
@@ -341,7 +354,7 @@ def failure_of(code: int) -> str | None:
     if code < 0:
         return f"killed by signal {-code}"
     if code > 128:
-        return f"stopped by signal {code - 128} after a checkpoint (exit code {code}); the next grid run resumes it"
+        return f"stopped by signal {code - 128} after a checkpoint (exit code {code})"
     return f"exit code {code} ({EXIT_MEANINGS.get(code, 'error')})"
 
 
@@ -414,7 +427,8 @@ def run_grid(grid: Grid) -> int:
     for name in progress.failed:
         print(f"failed: {name}; log {logs[name]}")
     if stopped:
-        print(f"grid stopped by signal {stopped}; the same command resumes it", flush=True)
+        print(f"grid stopped by signal {stopped} ({len(progress.interrupted)} runs interrupted, the ones past their "
+              "first checkpoint with a checkpoint of their last step); the same command continues it", flush=True)
         return 128 + stopped
     return 1 if progress.failed else 0
 
@@ -430,7 +444,7 @@ def run_local(todo, root, logs, grid, progress, record) -> int | None:
         progress.start(run.name)
         code = execute(run.command(root / run.name, resume), str(logs[run.name]), grid.cpus_per_run, live.add)
         record(run, code)
-        progress.end(run.name, failure_of(code))
+        progress.end(run.name, failure_of(code), interrupted=bool(stop))
 
     def request_stop(signum, frame):
         stop.append(signum)
@@ -463,7 +477,7 @@ def run_ray(todo, root, logs, grid, progress, record) -> int | None:
     else:
         ray.init(num_cpus=grid.workers * grid.cpus_per_run, include_dashboard=False)
     ray.cloudpickle.register_pickle_by_value(sys.modules[execute.__module__])  # the workers need not import this file
-    task = ray.remote(num_cpus=grid.cpus_per_run, num_gpus=grid.gpus_per_run, max_retries=0)(execute)
+    task = ray.remote(num_cpus=grid.cpus_per_run, num_gpus=grid.gpus_per_run, max_retries=0)(execute_ray_task)
 
     def capacity() -> int:
         """Runs the cluster has resources for now: only that many are submitted, so that 'running' means running."""
@@ -494,12 +508,12 @@ def run_ray(todo, root, logs, grid, progress, record) -> int | None:
                 try:
                     code = ray.get(ref)
                 except ray.exceptions.TaskCancelledError:
-                    progress.end(run.name, "interrupted (it wrote a checkpoint; the next grid run resumes it)")
+                    progress.end(run.name, "its Ray task was cancelled", interrupted=True)
                 except ray.exceptions.RayError as error:
                     progress.end(run.name, f"the Ray task failed ({type(error).__name__}: {str(error)[:300]})")
                 else:
                     record(run, code)
-                    progress.end(run.name, failure_of(code))
+                    progress.end(run.name, failure_of(code), interrupted=bool(stop))
             progress.show()
     finally:
         for s, handler in previous.items():
