@@ -16,7 +16,7 @@ import json
 import sys
 import warnings
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +67,6 @@ class Run:
     score: float | None = None
     """final evaluation metric (finished runs only)"""
     normalized: float | None = None
-    extra: dict = field(default_factory=dict)
 
     @property
     def algorithm(self) -> str:

@@ -4,7 +4,6 @@ do not stop the grid; the report on it, and on a synthetic folder whose aggregat
 
 import csv
 import json
-import os
 import shlex
 import signal
 import subprocess
@@ -170,17 +169,18 @@ def resume_grid(env_ids: list[str], workers: int) -> list[str]:
 
 
 @pytest.mark.slow
-def test_killed_grid_resumes_from_the_checkpoint_and_a_failed_run_does_not_stop_it(local_grid, tmp_path):
+def test_stopped_grid_resumes_from_the_checkpoint_and_a_failed_run_does_not_stop_it(local_grid, tmp_path):
     root = tmp_path / "grid"
     first, second = (f"pebble__Hopper-v5__oracle__fb20-10__disagreement__uniform__s{s}" for s in (1, 2))
     cmd = [sys.executable, str(ROOT / "experiments" / "grid.py"), "custom", "--root", str(root),
            *resume_grid(["Hopper-v5"], workers=1)]
-    killed = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, cwd=ROOT,
-                              start_new_session=True)
-    wait_for(root / first / "checkpoint.pt", killed)
-    os.killpg(killed.pid, signal.SIGKILL)  # the machine goes away: the grid and its run die at once
-    killed.communicate()
-    assert grid.run_state(root / first)[0] == "resumable"
+    stopped = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+    wait_for(root / first / "checkpoint.pt", stopped)  # the periodic checkpoint at step 100
+    stopped.send_signal(signal.SIGTERM)  # a batch system's time limit: the grid passes it on to its run
+    stdout, _ = stopped.communicate()
+    assert stopped.returncode == 128 + signal.SIGTERM
+    assert f"interrupted: {first}: stopped by signal 15 after a checkpoint (exit code 143)" in stdout
+    assert grid.run_state(root / first)[0] == "resumable" and not (root / second).exists()  # not started
     (root / second).mkdir()  # a run that died before its first checkpoint
     (root / second / "config.json").write_text("{}")
 
@@ -188,7 +188,8 @@ def test_killed_grid_resumes_from_the_checkpoint_and_a_failed_run_does_not_stop_
     assert result.returncode == 1
     assert "1 to resume, 3 to start" in result.stdout
     log = (root / "logs" / f"{first}.log").read_text()
-    assert "resuming from the checkpoint at step 100" in log and log.count("=== exit code 0") == 1
+    assert "SIGTERM: checkpoint saved at step" in log and "resuming from the checkpoint at step" in log
+    assert log.count("=== exit code 143") == 1 and log.count("=== exit code 0") == 1
     assert [p.name.split(".")[0] for p in (root / ".aside").iterdir()] == [second]
     for name in (first, second):  # the resumed run and the restarted one equal the uninterrupted runs
         assert grid.run_state(root / name)[0] == "finished"
