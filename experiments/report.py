@@ -1,0 +1,605 @@
+"""B-Pref report over a folder of runs: normalised returns, IQM / median / mean / optimality gap with 95% stratified
+bootstrap confidence intervals (rliable), a Markdown file with the tables and PNG plots. Docs: docs/experiments.md
+
+    python experiments/report.py runs/mini-bpref          # writes runs/mini-bpref/report/report.md and the PNGs
+
+A run is any folder below the root with a config.json (made by pebble.py or prefppo.py, by the grid runner or by
+hand). Normalised return of a run = its final evaluation return (Meta-World: success rate, as in the paper) / the
+mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same task.
+"""
+
+import csv
+import functools
+import importlib
+import inspect
+import json
+import sys
+import warnings
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from grid import read_eval, run_state  # noqa: E402
+from sim_teacher import TEACHERS, make_teacher  # noqa: E402
+
+SETTING = ("algorithm", "task", "teacher", "budget", "sampler", "schedule")
+METRICS = ("iqm", "median", "mean", "optimality_gap")
+GROUND_TRUTH = "ground-truth"
+TEACHER_OVERRIDES = ("teacher_beta", "teacher_gamma", "teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal")
+# Config fields that may differ between the seeds of one setting
+PER_RUN_FIELDS = {"seed", "output_dir", "resume", "checkpoint_every", "cuda", "track", "wandb_project_name",
+                  "capture_video", "exp_name", "labels_from"}
+
+
+@dataclass
+class Args:
+    root: tyro.conf.Positional[str]
+    """folder of runs (searched recursively for folders with a config.json)"""
+    out: str | None = None
+    """where report.md, runs.csv, aggregates.csv and the PNGs go (default: ROOT/report)"""
+    reps: int = 10000
+    """bootstrap replications of rliable's stratified bootstrap"""
+    seed: int = 0
+    """random seed of the bootstrap"""
+    alignment_runs: int = 1
+    """reward-alignment plots per algorithm and task (0 = none): finished oracle runs first, then the others"""
+
+
+@dataclass
+class Run:
+    path: Path
+    config: dict
+    rows: list[dict]
+    state: str
+    """finished, resumable, partial or new (grid.run_state)"""
+    detail: str
+    setting: tuple
+    """(algorithm, task, teacher, budget, sampler, schedule)"""
+    metric: str
+    """episode_return, or success_rate on Meta-World"""
+    score: float | None = None
+    """final evaluation metric (finished runs only)"""
+    normalized: float | None = None
+
+    @property
+    def algorithm(self) -> str:
+        return self.setting[0]
+
+    @property
+    def is_ground_truth(self) -> bool:
+        return self.setting[2] == GROUND_TRUTH
+
+
+@functools.cache
+def is_metaworld(env_id: str) -> bool:
+    import metaworld
+
+    return f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS
+
+
+def setting_of(config: dict) -> tuple:
+    """(algorithm, task, teacher, budget, sampler, schedule) of a run from its config.json; a teacher's overrides
+    (--teacher-beta ... that differ from the named teacher's values) are part of its name, and ground-truth runs
+    have no teacher, budget, sampler or schedule."""
+    algorithm = "prefppo" if "num_envs" in config else "pebble"
+    task = config["env_id"].removesuffix("-v3") if is_metaworld(config["env_id"]) else config["env_id"]
+    if config.get("ground_truth_reward"):
+        return algorithm, task, GROUND_TRUTH, "-", "-", "-"
+    preset = make_teacher(config["teacher"])  # a saved value equal to the teacher's own is no override
+    overrides = [f"{name.removeprefix('teacher_')}={config[name]}" for name in TEACHER_OVERRIDES
+                 if config.get(name) is not None and config[name] != getattr(preset, name.removeprefix("teacher_"))]
+    teacher = config["teacher"] + (f"({', '.join(overrides)})" if overrides else "")
+    budget = f"{config['max_feedback']}/{config['feedback_per_session']}"
+    return algorithm, task, teacher, budget, config["sampler"], config["schedule"]
+
+
+def find_runs(root: Path, out: Path) -> list[Run]:
+    """Every folder below root with a config.json, except hidden ones (the grid's .aside/) and the report's."""
+    runs = []
+    for config_path in sorted(root.rglob("config.json")):
+        path = config_path.parent
+        relative = path.relative_to(root).parts
+        if any(part.startswith(".") for part in relative) or path == out or out in path.parents:
+            continue
+        try:
+            config = json.loads(config_path.read_text())
+            setting = setting_of(config)
+        except (OSError, ValueError, KeyError) as error:
+            print(f"skipped {path}: unreadable config.json ({error})", file=sys.stderr)
+            continue
+        state, detail = run_state(path)
+        metric = "success_rate" if is_metaworld(config["env_id"]) else "episode_return"
+        rows = read_eval(path)
+        run = Run(path, config, rows, state, detail, setting, metric)
+        if state == "finished":
+            run.score = rows[-1][metric]
+        runs.append(run)
+    return runs
+
+
+def normalize(runs: list[Run]) -> tuple[dict, list[str]]:
+    """Divides each finished run's score by the mean score of its algorithm's finished ground-truth runs on the task.
+    Returns the baselines {(algorithm, task): scores} and one line per (algorithm, task) that cannot be normalised:
+    no finished ground-truth run, or a mean that is not positive. Nothing is divided by a missing baseline."""
+    baselines = defaultdict(list)
+    for run in runs:
+        if run.is_ground_truth and run.score is not None:
+            baselines[run.setting[:2]].append(run.score)
+    problems = {}
+    for run in runs:
+        if run.score is None:
+            continue
+        key = run.setting[:2]
+        if not baselines.get(key):
+            unfinished = sum(r.is_ground_truth and r.setting[:2] == key for r in runs)
+            problems[key] = (f"{key[0]} on {key[1]}: no finished ground-truth run (--ground-truth-reward) to normalise "
+                             f"by ({unfinished} unfinished); its runs are reported unnormalised")
+        elif np.mean(baselines[key]) <= 0:
+            problems[key] = (f"{key[0]} on {key[1]}: the ground-truth runs' mean final {run.metric} is "
+                             f"{np.mean(baselines[key]):.4g}, not positive, so it cannot normalise; its runs are "
+                             "reported unnormalised")
+        else:
+            run.normalized = run.score / float(np.mean(baselines[key]))
+    return dict(baselines), list(problems.values())
+
+
+def aggregate(scores: dict[str, np.ndarray], reps: int, seed: int) -> dict[str, dict]:
+    """IQM, median, mean and optimality gap of each (runs x tasks) score matrix, with 95% stratified bootstrap
+    confidence intervals (runs resampled within each task): rliable, as in the paper."""
+    from rliable import library, metrics
+
+    def all_metrics(x):
+        return np.array([metrics.aggregate_iqm(x), metrics.aggregate_median(x), metrics.aggregate_mean(x),
+                         metrics.aggregate_optimality_gap(x)])
+
+    with warnings.catch_warnings(action="ignore", category=FutureWarning):  # arch's note on rliable's RandomState
+        points, intervals = library.get_interval_estimates(scores, all_metrics, reps=reps,
+                                                           random_state=np.random.RandomState(seed))
+    return {key: {name: (float(points[key][i]), float(intervals[key][0, i]), float(intervals[key][1, i]))
+                  for i, name in enumerate(METRICS)} for key in scores}
+
+
+def teacher_order(name: str) -> tuple:
+    base = name.split("(")[0]
+    return (list(TEACHERS).index(base) if base in TEACHERS else len(TEACHERS), name)
+
+
+def sort_key(setting: tuple) -> tuple:
+    return setting[:2] + (teacher_order(setting[2]),) + setting[3:]
+
+
+def setting_aggregates(runs: list[Run], reps: int, seed: int) -> list[dict]:
+    """One row per setting of preference runs with at least one normalised run: the aggregates on one task."""
+    groups = defaultdict(list)
+    for run in runs:
+        if run.normalized is not None and not run.is_ground_truth:
+            groups[run.setting].append(run)
+    if not groups:
+        return []
+    keys = sorted(groups, key=sort_key)
+    results = aggregate({"|".join(k): np.array([[r.normalized] for r in groups[k]]) for k in keys}, reps, seed)
+    rows = []
+    for key in keys:
+        scores = np.array([r.score for r in groups[key]])
+        rows.append({**dict(zip(SETTING, key)), "runs": len(groups[key]), **results["|".join(key)],
+                     "score_mean": float(scores.mean()), "score_std": float(scores.std()),
+                     "metric": groups[key][0].metric})
+    return rows
+
+
+def across_task_aggregates(runs: list[Run], reps: int, seed: int) -> tuple[list[dict], list[str]]:
+    """Settings run on several tasks: aggregates over all tasks together (stratified: runs resampled within each
+    task). rliable needs a (runs x tasks) matrix, so every task must have as many normalised runs."""
+    groups = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        if run.normalized is not None and not run.is_ground_truth:
+            groups[run.setting[:1] + run.setting[2:]][run.setting[1]].append(run.normalized)
+    matrices, notes = {}, []
+    for key, per_task in groups.items():
+        if len(per_task) < 2:
+            continue
+        counts = {task: len(scores) for task, scores in per_task.items()}
+        if len(set(counts.values())) > 1:
+            notes.append(f"{' '.join(key)}: not aggregated across tasks, the tasks have different numbers of "
+                         f"normalised runs ({', '.join(f'{t}: {n}' for t, n in sorted(counts.items()))})")
+            continue
+        matrices[key] = np.array([per_task[task] for task in sorted(per_task)]).T
+    if not matrices:
+        return [], notes
+    keys = sorted(matrices, key=lambda k: (k[0], teacher_order(k[1])) + k[2:])
+    results = aggregate({"|".join(k): matrices[k] for k in keys}, reps, seed)
+    rows = [{"algorithm": k[0], "tasks": len(matrices[k][0]), "teacher": k[1], "budget": k[2], "sampler": k[3],
+             "schedule": k[4], "runs": matrices[k].size, **results["|".join(k)]} for k in keys]
+    return rows, notes
+
+
+def mixed_settings(runs: list[Run]) -> list[str]:
+    """Settings whose runs differ in a configuration field other than the seed (e.g. two grids with other step
+    counts in one folder): their aggregates would mix experiments."""
+    groups, notes = defaultdict(list), []
+    for run in runs:
+        groups[run.setting].append(run.config)
+    for setting, configs in sorted(groups.items(), key=lambda item: sort_key(item[0])):
+        differing = sorted(k for k in set().union(*configs) if k not in PER_RUN_FIELDS
+                           and len({json.dumps(c.get(k)) for c in configs}) > 1)
+        if differing:
+            notes.append(f"{' / '.join(setting)}: runs differ in {', '.join(differing)}")
+    return notes
+
+
+# ---------------------------------------------------------------- plots
+
+
+def plt_figure(rows: int, cols: int, width: float, height: float):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt, *plt.subplots(rows, cols, figsize=(width, height), squeeze=False)
+
+
+def bar_figures(rows: list[dict], x: str, hue: str, fixed: tuple[str, ...], out: Path, prefix: str,
+                title: str) -> list[Path]:
+    """One PNG per value of the `fixed` columns: IQM bars with their 95% CIs, `x` along the axis and one bar per
+    `hue` value; one panel per combination of the other setting columns. The paper's Figure 2 is x=teacher,
+    hue=algorithm, fixed=task."""
+    panels_by = [c for c in SETTING if c not in (x, hue, *fixed)]
+    figures = defaultdict(lambda: defaultdict(dict))
+    for row in rows:
+        figures[tuple(row[c] for c in fixed)][tuple(row[c] for c in panels_by)][(row[x], row[hue])] = row["iqm"]
+    paths = []
+    for fixed_values, panels in sorted(figures.items()):
+        order = teacher_order if x == "teacher" else str
+        widest = max(len({k[0] for k in cells}) for cells in panels.values())
+        hues = sorted({k[1] for cells in panels.values() for k in cells})
+        plt, fig, axes = plt_figure(len(panels), 1, max(6.0, 1.1 * widest * max(1, len(hues)) ** 0.5 + 2),
+                                    2.8 * len(panels) + 0.6)
+        width = 0.8 / len(hues)
+        for ax, (panel, cells) in zip(axes[:, 0], sorted(panels.items())):
+            xs = sorted({k[0] for k in cells}, key=order)
+            for j, hue_value in enumerate(hues):
+                present = [(i, cells[(x_value, hue_value)]) for i, x_value in enumerate(xs)
+                           if (x_value, hue_value) in cells]
+                if not present:
+                    continue
+                positions = [i - 0.4 + width * (j + 0.5) for i, _ in present]
+                points = np.array([p for _, (p, _, _) in present])
+                errors = np.array([[p - low, high - p] for _, (p, low, high) in present]).T
+                ax.bar(positions, points, width, yerr=errors, capsize=3, label=str(hue_value), color=f"C{j}")
+            ax.axhline(1.0, color="gray", linestyle="--", linewidth=0.8)
+            ax.set_xticks(range(len(xs)), xs)
+            ax.set_ylabel("IQM normalised return")
+            ax.set_title(", ".join(f"{c} {v}" for c, v in zip(panels_by, panel)), fontsize=9)
+            ax.legend(fontsize=8, title=hue)
+        fig.suptitle(f"{title}: {' '.join(fixed_values)} (bars: IQM, whiskers: 95% CI)", fontsize=10)
+        fig.tight_layout()
+        path = out / f"{prefix}_{'_'.join(str(v) for v in fixed_values)}.png".replace("/", "-")
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def curve_figures(runs: list[Run], out: Path) -> list[Path]:
+    """Per algorithm and task: evaluation return (or success rate) against environment steps, mean over the finished
+    runs of each setting and a band of one standard deviation; the ground-truth runs dashed."""
+    tasks = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        if run.state == "finished":
+            tasks[run.setting[:2]][run.setting].append(run)
+    paths = []
+    for (algorithm, task), settings in sorted(tasks.items()):
+        panel_keys = sorted({s[3:] for s in settings if s[2] != GROUND_TRUTH}) or [("-", "-", "-")]
+        plt, fig, axes = plt_figure(len(panel_keys), 1, 7.5, 3.4 * len(panel_keys) + 0.4)
+        for ax, panel in zip(axes[:, 0], panel_keys):
+            for setting in sorted(settings, key=sort_key):
+                if setting[3:] != panel and setting[2] != GROUND_TRUTH:
+                    continue
+                group = settings[setting]
+                steps = sorted(set.intersection(*[{row["step"] for row in r.rows} for r in group]))
+                values = np.array([[{row["step"]: row[r.metric] for row in r.rows}[s] for s in steps] for r in group])
+                mean, std = values.mean(0), values.std(0)
+                # a teacher keeps its colour in every panel and figure; the ground-truth runs are black and dashed
+                truth = setting[2] == GROUND_TRUTH
+                color, style = ("black", "--") if truth else (f"C{teacher_order(setting[2])[0]}", "-")
+                ax.plot(steps, mean, label=f"{setting[2]} ({len(group)})", color=color, linestyle=style)
+                ax.fill_between(steps, mean - std, mean + std, alpha=0.15, color=color)
+            ax.set_xlabel("environment steps")
+            ax.set_ylabel(group[0].metric.replace("_", " "))
+            ax.set_title(f"budget {panel[0]}, sampler {panel[1]}, schedule {panel[2]}", fontsize=9)
+            ax.legend(fontsize=8, title="teacher (runs)")
+        fig.suptitle(f"{algorithm} on {task}: mean and one standard deviation over seeds", fontsize=10)
+        fig.tight_layout()
+        path = out / f"curves_{algorithm}_{task}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def build(cls, obs_dim: int, action_dim: int, config: dict, **named):
+    """cls(obs_dim, action_dim, ...) with its other constructor arguments from `named` or, by name, config.json."""
+    arguments = list(inspect.signature(cls).parameters)[2:]
+    return cls(obs_dim, action_dim, **{a: named[a] if a in named else config[a] for a in arguments
+                                       if a in named or a in config})
+
+
+def load_final_model(run: Run) -> tuple:
+    """(the run's script as a module, a fresh evaluation environment made as the script makes it,
+    the final actor, the reward ensemble, the observation normaliser or None): final_model.pt in networks of the
+    sizes in config.json."""
+    import torch
+
+    module, config = importlib.import_module(run.algorithm), run.config
+    seed = config["seed"] + 10_000  # the scripts' evaluation seed; a script that derives its seeds says so:
+    if hasattr(module, "run_seeds"):
+        seed = module.run_seeds(config["seed"], config["num_envs"])["eval"]
+    with warnings.catch_warnings(action="ignore"):  # Gymnasium's notes on float64 bounds, as in the scripts' runs
+        env, _ = module.make_env(config["env_id"], seed)
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    saved = torch.load(run.path / "final_model.pt", map_location="cpu", weights_only=False)
+    actor = build(module.Actor, obs_dim, action_dim, config)
+    actor.load_state_dict(saved["actor"])
+    reward_model = build(module.RewardEnsemble, obs_dim, action_dim, config, size=config["reward_ensemble_size"])
+    reward_model.load_state_dict(saved["reward_model"])
+    obs_stats = None
+    if "obs_mean" in saved:  # prefppo: the policy sees normalised observations, the reward model raw ones
+        obs_stats = module.RunningMeanStd(obs_dim)
+        obs_stats.mean, obs_stats.var = saved["obs_mean"], saved["obs_var"]
+    return module, env, actor, reward_model, obs_stats
+
+
+def reward_alignment(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """True and learned rewards (the ensemble mean) at each step of the first mean-action episode of the run's final
+    policy in a fresh evaluation environment: the policy and reward inputs of the scripts' evaluate()."""
+    import torch
+
+    _, env, actor, reward_model, obs_stats = load_final_model(run)
+    true_rewards, learned_rewards = [], []
+    obs, _ = env.reset()
+    done = False
+    with torch.no_grad():
+        while not done:
+            if obs_stats is None:
+                action = actor.act(torch.as_tensor(obs)[None])[0]
+            else:
+                action = actor.mean(torch.as_tensor(obs_stats.normalize(obs))).clamp(-1, 1)
+            learned_rewards.append(reward_model(torch.cat([torch.as_tensor(obs), action])).mean().item())
+            obs, reward, terminated, truncated, _ = env.step(action.numpy())
+            true_rewards.append(float(reward))
+            done = terminated or truncated
+    env.close()
+    return np.array(true_rewards), np.array(learned_rewards)
+
+
+def alignment_figure(run: Run, root: Path, out: Path) -> tuple[Path, float]:
+    """The paper's reward analysis: learned and true reward along one episode (two scales: the learned reward is
+    tanh-bounded), and learned against true per step with their Pearson correlation."""
+    true_rewards, learned_rewards = reward_alignment(run)
+    correlation = float("nan")
+    if true_rewards.std() > 0 and learned_rewards.std() > 0:
+        correlation = float(np.corrcoef(true_rewards, learned_rewards)[0, 1])
+    plt, fig, axes = plt_figure(1, 2, 11, 3.6)
+    series, scatter = axes[0]
+    series.plot(true_rewards, color="tab:red", label="true reward")
+    series.set_xlabel("step of the episode")
+    series.set_ylabel("true reward", color="tab:red")
+    twin = series.twinx()
+    twin.plot(learned_rewards, color="tab:green", label="learned reward")
+    twin.set_ylabel("learned reward (ensemble mean)", color="tab:green")
+    scatter.scatter(true_rewards, learned_rewards, s=4, alpha=0.5)
+    scatter.set_xlabel("true reward")
+    scatter.set_ylabel("learned reward")
+    scatter.set_title(f"Pearson r = {correlation:.3f}", fontsize=9)
+    fig.suptitle(f"reward alignment: {run.path.relative_to(root)}", fontsize=9)
+    fig.tight_layout()
+    path = out / f"alignment_{run.path.name}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path, correlation
+
+
+# ---------------------------------------------------------------- the report
+
+
+def fmt(value) -> str:
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return "-"
+    return f"{value:.3g}" if isinstance(value, float) else str(value)
+
+
+def ci_text(value: tuple) -> str:
+    point, low, high = value
+    return f"{point:.3f} [{low:.3f}, {high:.3f}]"
+
+
+def table(header: list[str], rows: list[list]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header),
+            *["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]]
+
+
+def expected_runs(root: Path) -> tuple[dict, dict]:
+    """From the grid runner's grid.json files below root: {run dir: last exit code} of every run a grid planned."""
+    expected = {}
+    for spec_path in root.rglob("grid.json"):
+        try:
+            runs = json.loads(spec_path.read_text())["runs"]
+        except (OSError, ValueError, KeyError):
+            continue
+        for name, entry in runs.items():
+            expected[spec_path.parent / name] = entry.get("exit_code")
+    return expected, {path: path.parent / "logs" / f"{path.name}.log" for path in expected}
+
+
+def write_csv(path: Path, rows: list[dict]):
+    if not rows:
+        path.write_text("")
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def flat(row: dict) -> dict:
+    """An aggregate row with each (point, low, high) as three columns."""
+    result = {}
+    for key, value in row.items():
+        if isinstance(value, tuple):
+            result.update({key: value[0], f"{key}_low": value[1], f"{key}_high": value[2]})
+        else:
+            result[key] = value
+    return result
+
+
+class ReportError(Exception):
+    """A problem with the command line or the folder, said in one line."""
+
+
+def report(args: Args) -> Path:
+    root = Path(args.root).resolve()
+    out = Path(args.out).resolve() if args.out else root / "report"
+    if not root.is_dir():
+        raise ReportError(f"{args.root!r} is not a folder")
+    if args.reps < 1 or args.alignment_runs < 0:
+        raise ReportError("--reps must be >= 1 and --alignment-runs >= 0")
+    runs = find_runs(root, out)
+    if not runs:
+        raise ReportError(f"no runs (folders with a config.json) below {root}")
+
+    def relative(path: Path) -> str:
+        return str(path.relative_to(root)) if root in path.parents else str(path)
+
+    out.mkdir(parents=True, exist_ok=True)
+    baselines, problems = normalize(runs)
+    settings = setting_aggregates(runs, args.reps, args.seed)
+    across, across_notes = across_task_aggregates(runs, args.reps, args.seed)
+    mixed = mixed_settings(runs)
+    finished = [run for run in runs if run.state == "finished"]
+
+    figures = bar_figures(settings, "teacher", "algorithm", ("task",), out, "figure2",
+                          "IQM normalised return per teacher")
+    for column in ("sampler", "schedule", "budget"):  # compared where an algorithm ran a task with several
+        values = defaultdict(set)
+        for row in settings:
+            values[row["algorithm"], row["task"]].add(row[column])
+        varied = [row for row in settings if len(values[row["algorithm"], row["task"]]) > 1]
+        figures += bar_figures(varied, "teacher", column, ("algorithm", "task"), out, f"{column}s",
+                               f"IQM normalised return per {column}")
+    figures += curve_figures(runs, out)
+    alignments, alignment_notes = [], []
+    if args.alignment_runs:
+        candidates = defaultdict(list)
+        for run in finished:
+            if not run.is_ground_truth:
+                candidates[run.setting[:2]].append(run)
+        for key, group in sorted(candidates.items()):
+            for run in sorted(group, key=lambda r: (r.setting[2] != "oracle", str(r.path)))[: args.alignment_runs]:
+                try:
+                    alignments.append((run, *alignment_figure(run, root, out)))
+                except Exception as error:  # a model or environment that cannot be rebuilt here: say so and go on
+                    alignment_notes.append(f"{run.path.relative_to(root)}: no reward-alignment plot "
+                                           f"({type(error).__name__}: {error})")
+
+    lines = [f"# B-Pref report: {root.name}", "",
+             f"{len(runs)} runs found in `{root}`, {len(finished)} finished. Normalised return = final evaluation "
+             "return (Meta-World: success rate) / mean of the same over the finished ground-truth runs of the same "
+             f"algorithm on the task. Aggregates over seeds with 95% stratified bootstrap CIs (rliable, {args.reps} "
+             "replications); optimality gap = mean shortfall below 1.", ""]
+    if settings:
+        lines += ["## Normalised return per setting", ""]
+        lines += table(["algorithm", "task", "teacher", "budget", "sampler", "schedule", "runs", "IQM", "median",
+                        "mean", "optimality gap", "final score (mean ± std)"],
+                       [[*(row[c] for c in SETTING), row["runs"], *(ci_text(row[m]) for m in METRICS),
+                         f"{row['score_mean']:.3g} ± {row['score_std']:.3g}"] for row in settings])
+        lines.append("")
+    if across:
+        lines += ["## Across tasks (runs resampled within each task)", ""]
+        lines += table(["algorithm", "tasks", "teacher", "budget", "sampler", "schedule", "runs", "IQM", "median",
+                        "mean", "optimality gap"],
+                       [[row["algorithm"], row["tasks"], row["teacher"], row["budget"], row["sampler"], row["schedule"],
+                         row["runs"], *(ci_text(row[m]) for m in METRICS)] for row in across])
+        lines.append("")
+    if baselines:
+        lines += ["## Ground-truth baselines (the denominators)", ""]
+        lines += table(["algorithm", "task", "finished runs", "mean final score", "per run"],
+                       [[*key, len(scores), f"{np.mean(scores):.4g}", ", ".join(f"{s:.4g}" for s in scores)]
+                        for key, scores in sorted(baselines.items())])
+        lines.append("")
+    for title, notes in (("Not normalisable", problems), ("Settings that mix configurations", mixed),
+                         ("Not aggregated across tasks", across_notes),
+                         ("Reward alignment not plotted", alignment_notes)):
+        if notes:
+            lines += [f"## {title}", "", *[f"- {note}" for note in notes], ""]
+    if figures or alignments:
+        lines += ["## Figures", ""]
+        lines += [f"![{path.stem}]({path.name})" for path in figures]
+        lines += [f"![{path.stem}]({path.name}) reward alignment of `{relative(run.path)}` along one evaluation "
+                  f"episode: Pearson r = {r:.3f}" for run, path, r in alignments]
+        lines.append("")
+
+    run_rows = []
+    for run in runs:
+        last = run.rows[-1] if run.rows else {}
+        overhead = last.get("overhead_seconds", float("nan")) / last["wall_time"] if last.get("wall_time") else None
+        run_rows.append({"run": relative(run.path), **dict(zip(SETTING, run.setting)), "seed": run.config["seed"],
+                         "state": run.state, "step": int(last.get("step", 0)), "metric": run.metric,
+                         "score": run.score, "normalized": run.normalized,
+                         "mean_over_evaluations": np.mean([r[run.metric] for r in run.rows]) if run.rows else None,
+                         "reward_correlation": last.get("reward_correlation"),
+                         "wall_minutes": last.get("wall_time", float("nan")) / 60 if last else None,
+                         "overhead_share": overhead})
+    lines += ["## Runs", ""]
+    lines += table(["run", "algorithm", "task", "teacher", "seed", "state", "step", "final score", "normalised",
+                    "mean over evaluations", "final reward_correlation", "wall time (min)", "overhead share"],
+                   [[f"`{row['run']}`", row["algorithm"], row["task"], row["teacher"], row["seed"], row["state"],
+                     row["step"], fmt(row["score"]), fmt(row["normalized"]),
+                     fmt(row["mean_over_evaluations"]), fmt(row["reward_correlation"]), fmt(row["wall_minutes"]),
+                     fmt(row["overhead_share"])] for row in run_rows])
+    lines.append("")
+
+    expected, logs = expected_runs(root)
+    found = {run.path: run for run in runs}
+    incomplete = []
+    for run in runs:
+        if run.state != "finished":
+            code = expected.get(run.path)
+            status = f"last exit code {code}" if code not in (None, 0) else "running or stopped"
+            log = f"; log `{relative(logs[run.path])}`" if run.path in logs else ""
+            incomplete.append(f"`{relative(run.path)}`: unfinished, {run.detail} ({status}){log}")
+    for path, code in sorted(expected.items()):
+        if path not in found:
+            incomplete.append(f"`{relative(path)}`: missing (planned by the grid, not started"
+                              f"{'' if code is None else f', last exit code {code}'}); log `{relative(logs[path])}`")
+    if incomplete:
+        lines += ["## Unfinished, failed and missing runs (not in the tables above)", "",
+                  *[f"- {line}" for line in incomplete], ""]
+
+    (out / "report.md").write_text("\n".join(lines))
+    write_csv(out / "runs.csv", run_rows)
+    write_csv(out / "aggregates.csv", [flat(row) for row in settings])
+    write_csv(out / "aggregates_across_tasks.csv", [flat(row) for row in across])
+    for note in problems + mixed + alignment_notes:
+        print(f"note: {note}")
+    if incomplete:
+        print(f"{len(incomplete)} runs unfinished, failed or missing: listed in the report")
+    print(f"report: {len(runs)} runs ({len(finished)} finished), {len(settings)} settings -> {out / 'report.md'}, "
+          f"{len(figures) + len(alignments)} PNGs")
+    return out / "report.md"
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    try:
+        report(args)
+    except ReportError as error:
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)

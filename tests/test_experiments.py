@@ -1,0 +1,404 @@
+"""experiments/: the grid runner on a tiny grid of both scripts (two teachers, two seeds, their ground-truth runs)
+through the local pool and a local Ray instance, a rerun that skips, a killed run that is resumed, failures that
+do not stop the grid; the report on it, and on a synthetic folder whose aggregates are computed by hand here."""
+
+import csv
+import json
+import shlex
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import grid
+import pebble
+import prefppo
+import report
+from tests.helpers import ENV, ROOT, eval_curve, wait_for
+
+# Hopper-v5: positive returns (a ground-truth baseline that can normalise) and short random episodes. pebble: sessions
+# at steps 101 and 151, evaluations at 100 and 200; prefppo: rollouts of 100, sessions at 100 and 200, 3 evaluations
+COMMON = ("--unsup-steps 50 --feedback-every 50 --segment-len 5 --eval-every 100 --hidden-dim 16 --num-layers 1 "
+          "--reward-epochs 2 --reward-batch-size 16 --eval-episodes 1")
+PEBBLE = "--total-timesteps 200 --seed-steps 50 --batch-size 16 --buffer-size 1000 --critic-reset-updates 10"
+PREFPPO = "--total-timesteps 300 --num-envs 2 --num-steps 50 --minibatch-size 50 --update-epochs 2"
+TINY_GRID = ["--algorithms", "pebble", "prefppo", "--env-ids", "Hopper-v5", "--teachers", "oracle", "mistake",
+             "--budgets", "20/10", "--seeds", "1", "2", f"--flags={COMMON}", f"--pebble-flags={PEBBLE}",
+             f"--prefppo-flags={PREFPPO}", "--progress-every", "5"]
+TEACHER_RUNS = [f"{a}__Hopper-v5__{t}__fb20-10__disagreement__uniform__s{s}"
+                for a in ("pebble", "prefppo") for t in ("oracle", "mistake") for s in (1, 2)]
+GROUND_TRUTH_RUNS = [f"{a}__Hopper-v5__ground-truth__s{s}" for a in ("pebble", "prefppo") for s in (1, 2)]
+
+
+def run_grid(root, *flags, timeout=600) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "experiments" / "grid.py"), "custom", "--root", str(root), *flags]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
+
+
+def run_report(root, *flags) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "experiments" / "report.py"), str(root), *flags]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, cwd=ROOT)
+
+
+def read_csv(path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def local_grid(tmp_path_factory):
+    """The tiny grid, once, through the local backend with two workers."""
+    root = tmp_path_factory.mktemp("local") / "grid"
+    result = run_grid(root, *TINY_GRID, "--workers", "2")
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return root, result
+
+
+# ---------------------------------------------------------------- the grid, without running anything
+
+
+def test_grid_is_the_cross_product_plus_one_ground_truth_run_per_algorithm_task_and_seed():
+    spec = grid.Grid(algorithms=("pebble", "prefppo"), env_ids=("walker-walk", "button-press"),
+                     teachers=("oracle", "stoc", "mistake"), budgets=("1000/100", "500"),
+                     samplers=("uniform", "entropy"), schedules=("decay",), seeds=(1, 2, 3), flags="--hidden-dim 64",
+                     pebble_flags="--batch-size 64")
+    runs = grid.expand(spec)
+    teacher_runs = [r for r in runs if "--ground-truth-reward" not in r.flags]
+    truth_runs = [r for r in runs if "--ground-truth-reward" in r.flags]
+    assert len(teacher_runs) == 2 * 2 * 3 * 2 * 2 * 1 * 3 and len(truth_runs) == 2 * 2 * 3
+    assert len({r.name for r in runs}) == len(runs)
+    assert not any("--teacher" in r.flags or "--max-feedback" in r.flags or "--sampler" in r.flags for r in truth_runs)
+    one = next(r for r in teacher_runs if r.name == "pebble__walker-walk__stoc__fb500__entropy__decay__s2")
+    assert one.flags == ("--env-id", "walker-walk", "--seed", "2", "--teacher", "stoc", "--max-feedback", "500",
+                         "--sampler", "entropy", "--schedule", "decay", "--hidden-dim", "64", "--batch-size", "64")
+    assert all(("--batch-size" in r.flags) == (r.algorithm == "pebble") for r in runs)
+    assert one.command(ROOT / "x", resume=True)[-2:] == ["--resume", str(ROOT / "x")]
+
+
+BAD_GRIDS = [
+    (["--teachers", "oracle", "sleepy"], "--teachers 'sleepy' is not one of oracle, stoc"),
+    (["--algorithms", "dqn"], "--algorithms 'dqn' is not one of pebble, prefppo"),
+    (["--budgets", "100/200"], "--budgets '100/200' is not max_feedback[/feedback_per_session]"),
+    (["--seeds", "1", "1"], "--seeds lists a value twice"),
+    (["--flags=--seed 3"], "--flags sets --seed, which the grid sets itself"),
+    (["--workers", "0"], "--workers and --cpus-per-run must be >= 1"),
+]
+
+
+@pytest.mark.parametrize("flags, message", BAD_GRIDS, ids=[" ".join(f) for f, _ in BAD_GRIDS])
+def test_bad_grid_is_one_error_line_before_any_run(tmp_path, flags, message):
+    result = run_grid(tmp_path / "grid", *flags)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()] and message in result.stderr, result.stderr
+    assert not (tmp_path / "grid").exists()
+
+
+def test_dry_run_prints_every_command_and_starts_nothing(tmp_path):
+    result = run_grid(tmp_path / "grid", *TINY_GRID, "--dry-run")
+    assert result.returncode == 0, result.stderr
+    commands = [line for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS=1 python ")]
+    assert len(commands) == 12
+    first = shlex.split(commands[0])
+    assert first[2].endswith("pebble.py") and first[first.index("--teacher") + 1] == "oracle"
+    assert first[first.index("--output-dir") + 1] == str((tmp_path / "grid" / TEACHER_RUNS[0]).resolve())
+    assert sum("--ground-truth-reward" in c for c in commands) == 4
+    assert not (tmp_path / "grid").exists()
+
+
+# ---------------------------------------------------------------- the tiny grid, run
+
+
+@pytest.mark.slow
+def test_local_grid_runs_every_run_to_its_end_with_its_own_directory_and_log(local_grid):
+    root, result = local_grid
+    assert "grid: 12 runs" in result.stdout and "12/12 done" in result.stdout
+    spec = json.loads((root / "grid.json").read_text())["runs"]
+    assert sorted(spec) == sorted(TEACHER_RUNS + GROUND_TRUTH_RUNS)
+    for name in TEACHER_RUNS + GROUND_TRUTH_RUNS:
+        assert grid.run_state(root / name)[0] == "finished"
+        assert spec[name]["exit_code"] == 0
+        log = (root / "logs" / f"{name}.log").read_text()
+        assert log.count("=== exit code 0") == 1 and "done:" in log
+        config = json.loads((root / name / "config.json").read_text())
+        assert config["ground_truth_reward"] == (name in GROUND_TRUTH_RUNS)
+        assert len(list((root / name / "labels").glob("session_*.npz"))) == (0 if name in GROUND_TRUTH_RUNS else 2)
+    assert json.loads((root / TEACHER_RUNS[2] / "config.json").read_text())["teacher"] == "mistake"
+
+
+@pytest.mark.slow
+def test_rerun_skips_the_finished_runs(local_grid):
+    root, _ = local_grid
+    before = {name: (root / name / "final_model.pt").stat().st_mtime_ns for name in TEACHER_RUNS}
+    result = run_grid(root, *TINY_GRID)
+    assert result.returncode == 0, result.stderr
+    assert "12 finished, 0 to resume, 0 to start" in result.stdout
+    assert before == {name: (root / name / "final_model.pt").stat().st_mtime_ns for name in TEACHER_RUNS}
+    assert (root / "logs" / f"{TEACHER_RUNS[0]}.log").read_text().count("=== ") == 2  # start and exit, once
+
+
+@pytest.mark.slow
+def test_a_rerun_with_other_flags_is_refused_rather_than_mixed_into_the_runs(local_grid):
+    root, _ = local_grid
+    flags = [f.replace("--total-timesteps 200", "--total-timesteps 400") for f in TINY_GRID]
+    result = run_grid(root, *flags)
+    assert result.returncode == 1
+    assert result.stdout.count("holds a run of other flags") == 6  # pebble's runs; prefppo's flags are unchanged
+    assert "6 finished, 0 to resume, 0 to start, 6 refused" in result.stdout
+
+
+@pytest.mark.slow
+def test_ray_backend_runs_the_same_grid_with_the_same_results(local_grid, tmp_path):
+    root = tmp_path / "ray"
+    result = run_grid(root, *TINY_GRID, "--backend", "ray", "--workers", "2")
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "Started a local Ray instance" in result.stderr and "12/12 done" in result.stdout
+    for name in TEACHER_RUNS + GROUND_TRUTH_RUNS:
+        assert grid.run_state(root / name)[0] == "finished"
+        # the same command on CPU gives the same run, whichever backend started it
+        np.testing.assert_allclose(np.array(eval_curve(root / name), float),
+                                   np.array(eval_curve(local_grid[0] / name), float), rtol=1e-6)
+
+
+def resume_grid(env_ids: list[str], workers: int) -> list[str]:
+    return ["--algorithms", "pebble", "--env-ids", *env_ids, "--teachers", "oracle", "--budgets", "20/10", "--seeds",
+            "1", "2", "--no-ground-truth", f"--flags={COMMON} --checkpoint-every 100", f"--pebble-flags={PEBBLE}",
+            "--workers", str(workers)]
+
+
+@pytest.mark.slow
+def test_stopped_grid_resumes_from_the_checkpoint_and_a_failed_run_does_not_stop_it(local_grid, tmp_path):
+    root = tmp_path / "grid"
+    first, second = (f"pebble__Hopper-v5__oracle__fb20-10__disagreement__uniform__s{s}" for s in (1, 2))
+    cmd = [sys.executable, str(ROOT / "experiments" / "grid.py"), "custom", "--root", str(root),
+           *resume_grid(["Hopper-v5"], workers=1)]
+    stopped = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+    wait_for(root / first / "checkpoint.pt", stopped)  # the periodic checkpoint at step 100
+    stopped.send_signal(signal.SIGTERM)  # a batch system's time limit: the grid passes it on to its run
+    stdout, _ = stopped.communicate()
+    assert stopped.returncode == 128 + signal.SIGTERM
+    assert f"interrupted: {first}: stopped by signal 15 after a checkpoint (exit code 143)" in stdout
+    assert grid.run_state(root / first)[0] == "resumable" and not (root / second).exists()  # not started
+    (root / second).mkdir()  # a run that died before its first checkpoint
+    (root / second / "config.json").write_text("{}")
+
+    result = run_grid(root, *resume_grid(["Hopper-v5", "NoSuchTask-v0"], workers=2))
+    assert result.returncode == 1
+    assert "1 to resume, 3 to start" in result.stdout
+    log = (root / "logs" / f"{first}.log").read_text()
+    assert "SIGTERM: checkpoint saved at step" in log and "resuming from the checkpoint at step" in log
+    assert log.count("=== exit code 143") == 1 and log.count("=== exit code 0") == 1
+    assert [p.name.split(".")[0] for p in (root / ".aside").iterdir()] == [second]
+    for name in (first, second):  # the resumed run and the restarted one equal the uninterrupted runs
+        assert grid.run_state(root / name)[0] == "finished"
+        np.testing.assert_allclose(np.array(eval_curve(root / name), float),
+                                   np.array(eval_curve(local_grid[0] / name), float), rtol=1e-6)
+    for seed in (1, 2):  # an unknown task fails each of its runs, and the grid goes on
+        name = f"pebble__NoSuchTask-v0__oracle__fb20-10__disagreement__uniform__s{seed}"
+        log_path = root / "logs" / f"{name}.log"
+        assert f"failed: {name}: exit code 2 (bad input); log {log_path}" in result.stdout
+        assert "error: --env-id 'NoSuchTask-v0'" in log_path.read_text()
+
+
+# ---------------------------------------------------------------- the report on the tiny grid
+
+
+@pytest.mark.slow
+def test_report_on_the_tiny_grid_writes_markdown_csv_and_pngs(local_grid, tmp_path):
+    root, _ = local_grid
+    out = tmp_path / "report"
+    result = run_report(root, "--out", str(out), "--reps", "200")
+    assert result.returncode == 0, result.stderr[-3000:]
+    markdown = (out / "report.md").read_text()
+    assert "## Normalised return per setting" in markdown and "Unfinished" not in markdown
+    for png in ("figure2_Hopper-v5", "curves_pebble_Hopper-v5", "curves_prefppo_Hopper-v5",
+                f"alignment_{TEACHER_RUNS[0]}", f"alignment_{TEACHER_RUNS[4]}"):
+        assert (out / f"{png}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"({png}.png)" in markdown
+    assert not list(out.glob("samplers_*")) and not list(out.glob("schedules_*"))  # one sampler, one schedule
+    rows = {row["run"]: row for row in read_csv(out / "runs.csv")}
+    final = {name: grid.read_eval(root / name)[-1]["episode_return"] for name in TEACHER_RUNS + GROUND_TRUTH_RUNS}
+    for name in TEACHER_RUNS + GROUND_TRUTH_RUNS:
+        baseline = np.mean([final[f"{name.split('__')[0]}__Hopper-v5__ground-truth__s{s}"] for s in (1, 2)])
+        assert float(rows[name]["normalized"]) == pytest.approx(final[name] / baseline, rel=1e-9)
+    aggregates = read_csv(out / "aggregates.csv")
+    assert [(r["algorithm"], r["teacher"], r["runs"]) for r in aggregates] == [
+        ("pebble", "oracle", "2"), ("pebble", "mistake", "2"), ("prefppo", "oracle", "2"), ("prefppo", "mistake", "2")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [TEACHER_RUNS[0], TEACHER_RUNS[4]], ids=["pebble", "prefppo"])
+def test_reward_alignment_rebuilds_the_final_model_as_the_run_evaluated_it(local_grid, name):
+    """The report rebuilds env, policy and reward model from config.json and final_model.pt. Replayed with the
+    script's own evaluate(), the rebuilt run's evaluation episodes (one per row of eval.csv) end in the run's own
+    final evaluation; the report's alignment episode is the first of them, seen through the same policy."""
+    torch.set_num_threads(1)  # as the run had
+    run = next(r for r in report.find_runs(local_grid[0], local_grid[0] / "report") if r.path.name == name)
+    module, env, actor, reward_model, obs_stats = report.load_final_model(run)
+    networks = (actor, reward_model) if module is pebble else (actor, obs_stats, reward_model)
+    replayed = [module.evaluate(*networks, env, 1, "cpu") for _ in grid.read_eval(run.path)]
+    final = grid.read_eval(run.path)[-1]
+    assert replayed[-1]["episode_return"] == pytest.approx(final["episode_return"], rel=1e-6)
+    assert replayed[-1]["reward_correlation"] == pytest.approx(final["reward_correlation"], rel=1e-5)
+    true_rewards, learned_rewards = report.reward_alignment(run)
+    assert true_rewards.sum() == pytest.approx(replayed[0]["episode_return"], rel=1e-9)
+    correlation = np.corrcoef(true_rewards, learned_rewards)[0, 1]
+    assert correlation == pytest.approx(replayed[0]["reward_correlation"], rel=1e-6)
+
+
+# ---------------------------------------------------------------- the report on a synthetic folder
+
+
+def write_run(root, name, env_id, seed, finals, teacher="oracle", sampler="disagreement", truth=False, total=10000,
+              finished=True, metric="episode_return", budget=(1000, 100)):
+    """A run folder as the scripts write it: config.json, eval.csv (two evaluations, the last one `finals`),
+    final_model.pt when finished. `finals` is the final value of `metric`."""
+    path = root / name
+    path.mkdir(parents=True)
+    config = {"env_id": env_id, "seed": seed, "teacher": teacher, "sampler": sampler, "schedule": "uniform",
+              "max_feedback": budget[0], "feedback_per_session": budget[1], "ground_truth_reward": truth,
+              "total_timesteps": total, **{k: None for k in report.TEACHER_OVERRIDES}}
+    (path / "config.json").write_text(json.dumps(config))
+    last_step = total if finished else total // 2
+    rows = [{"step": total // 2, "episode_return": 1.0, "success_rate": 0.0},
+            {"step": last_step, "episode_return": 1000.0, "success_rate": 0.0, metric: finals}]
+    with open(path / "eval.csv", "w", newline="") as f:
+        fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
+                  "wall_time", "overhead_seconds"]
+        writer = csv.DictWriter(f, fields, restval="0")
+        writer.writeheader()
+        writer.writerows(rows if finished else rows[:1])
+    if finished:
+        (path / "final_model.pt").write_bytes(b"")
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """walker-walk: ground truth 400, 600 (mean 500); oracle 100 ... 900 -> 0.2, 0.4, 0.6, 0.8, 1.0, 1.8; mistake 100,
+    300 -> 0.2, 0.6; oracle with entropy sampling 500, 500 -> 1.0, 1.0. quadruped-walk: ground truth 100, 100; oracle
+    10 ... 60 -> 0.1 ... 0.6. button-press (Meta-World: success rate; budget 10000/50): ground truth 0.8, 1.0;
+    oracle 0.45, 0.9 -> 0.5, 1.0. cheetah-run: oracle runs and no ground truth. One unfinished run, one planned and
+    missing."""
+    root = tmp_path_factory.mktemp("synthetic") / "runs"
+    for seed, value in enumerate([400, 600], 1):
+        write_run(root, f"walker_truth_{seed}", "walker-walk", seed, value, truth=True)
+    for seed, value in enumerate([100, 200, 300, 400, 500, 900], 1):
+        write_run(root, f"walker_oracle_{seed}", "walker-walk", seed, value)
+    for seed, value in enumerate([100, 300], 1):
+        write_run(root, f"walker_mistake_{seed}", "walker-walk", seed, value, teacher="mistake")
+        write_run(root, f"walker_entropy_{seed}", "walker-walk", seed, 500, sampler="entropy")
+    write_run(root, "walker_mistake_3", "walker-walk", 3, 0, teacher="mistake", finished=False)
+    for seed in (1, 2):
+        write_run(root, f"quadruped_truth_{seed}", "quadruped-walk", seed, 100, truth=True)
+    for seed, value in enumerate([10, 20, 30, 40, 50, 60], 1):
+        write_run(root, f"quadruped_oracle_{seed}", "quadruped-walk", seed, value)
+    for seed, value in enumerate([0.8, 1.0], 1):
+        write_run(root, f"button_truth_{seed}", "button-press", seed, value, truth=True, metric="success_rate")
+    for seed, value in enumerate([0.45, 0.9], 1):
+        write_run(root, f"button_oracle_{seed}", "button-press", seed, value, metric="success_rate", budget=(10000, 50))
+    for seed in (1, 2):
+        write_run(root, f"cheetah_oracle_{seed}", "cheetah-run", seed, 300)
+    (root / "grid.json").write_text(json.dumps({"runs": {"walker_oracle_7": {"command": [], "exit_code": None}}}))
+    result = run_report(root, "--reps", "2000", "--alignment-runs", "0")
+    assert result.returncode == 0, result.stderr[-3000:]
+    return root, result
+
+
+def aggregate_rows(path) -> dict:
+    return {(r["algorithm"], r["task"], r["teacher"], r["sampler"]): {k: float(v) for k, v in r.items()
+                                                                     if k not in report.SETTING + ("metric",)}
+            for r in read_csv(path)}
+
+
+def test_aggregates_equal_the_values_computed_by_hand(synthetic):
+    root, _ = synthetic
+    rows = aggregate_rows(root / "report" / "aggregates.csv")
+    oracle = rows[("pebble", "walker-walk", "oracle", "disagreement")]
+    # normalised 0.2, 0.4, 0.6, 0.8, 1.0, 1.8: IQM drops one of six at each end (25%); gap = 1 - mean(min(x, 1));
+    # rliable's median is the median over tasks of each task's mean, so on one task it is the mean
+    assert oracle["iqm"] == pytest.approx((0.4 + 0.6 + 0.8 + 1.0) / 4)
+    assert oracle["median"] == pytest.approx(0.8) and oracle["mean"] == pytest.approx(0.8)
+    assert oracle["optimality_gap"] == pytest.approx(1 - 4.0 / 6)
+    # two runs, 0.2 and 0.6: a bootstrap mean is 0.2, 0.4 or 0.6 with chances 1/4, 1/2, 1/4, so the 95% CI is [0.2, 0.6]
+    mistake = rows[("pebble", "walker-walk", "mistake", "disagreement")]
+    assert (mistake["mean_low"], mistake["mean"], mistake["mean_high"]) == pytest.approx((0.2, 0.4, 0.6))
+    entropy = rows[("pebble", "walker-walk", "oracle", "entropy")]  # identical runs: a CI of width 0
+    assert (entropy["iqm_low"], entropy["iqm_high"]) == pytest.approx((1.0, 1.0))
+    assert rows[("pebble", "quadruped-walk", "oracle", "disagreement")]["mean"] == pytest.approx(0.35)
+    button = rows[("pebble", "button-press", "oracle", "disagreement")]  # success rates 0.45, 0.9 over 0.9
+    assert button["mean"] == pytest.approx(0.75) and button["optimality_gap"] == pytest.approx(0.25)
+    # walker-walk and quadruped-walk together (button-press has another budget): IQM of the 12 scores = mean of the
+    # middle 6 of 0.1 0.2 0.2 0.3 0.4 0.4 | 0.5 0.6 0.6 0.8 1.0 1.8 -> 0.3 0.4 0.4 0.5 0.6 0.6
+    across = {r["teacher"] + r["sampler"]: r for r in read_csv(root / "report" / "aggregates_across_tasks.csv")}
+    assert float(across["oracledisagreement"]["iqm"]) == pytest.approx(2.8 / 6)
+    assert float(across["oracledisagreement"]["median"]) == pytest.approx((0.8 + 0.35) / 2)  # of the two task means
+    assert across["oracledisagreement"]["tasks"] == "2" and across["oracledisagreement"]["runs"] == "12"
+
+
+def test_normalised_return_is_divided_by_the_mean_of_the_same_algorithms_ground_truth_runs(synthetic):
+    root, _ = synthetic
+    runs = {row["run"]: row for row in read_csv(root / "report" / "runs.csv")}
+    assert float(runs["walker_oracle_6"]["normalized"]) == pytest.approx(900 / 500)
+    assert float(runs["walker_truth_1"]["normalized"]) == pytest.approx(400 / 500)
+    assert float(runs["button_oracle_1"]["normalized"]) == pytest.approx(0.45 / 0.9)  # success, not the return 1000
+    assert runs["button_oracle_1"]["metric"] == "success_rate"
+
+
+def test_a_missing_baseline_is_named_and_nothing_is_divided_by_it(synthetic):
+    root, result = synthetic
+    message = "pebble on cheetah-run: no finished ground-truth run (--ground-truth-reward) to normalise by"
+    assert message in result.stdout
+    markdown = (root / "report" / "report.md").read_text()
+    assert "## Not normalisable" in markdown and message in markdown
+    runs = {row["run"]: row for row in read_csv(root / "report" / "runs.csv")}
+    assert runs["cheetah_oracle_1"]["normalized"] == "" and float(runs["cheetah_oracle_1"]["score"]) == 300
+    assert not any(task == "cheetah-run" for _, task, _, _ in aggregate_rows(root / "report" / "aggregates.csv"))
+
+
+def test_unfinished_and_missing_runs_are_listed_not_aggregated(synthetic):
+    root, _ = synthetic
+    markdown = (root / "report" / "report.md").read_text()
+    assert "`walker_mistake_3`: unfinished, last evaluation at step 5000 of 10000" in markdown
+    assert "`walker_oracle_7`: missing (planned by the grid, not started)" in markdown
+    rows = aggregate_rows(root / "report" / "aggregates.csv")
+    assert len(read_csv(root / "report" / "aggregates.csv")) == 5
+    assert rows[("pebble", "walker-walk", "mistake", "disagreement")]["mean"] == pytest.approx(0.4)  # 2 runs, not 3
+
+
+def test_sampler_comparison_and_figure_2_are_drawn(synthetic):
+    out = synthetic[0] / "report"
+    for png in ("figure2_walker-walk", "figure2_button-press", "samplers_pebble_walker-walk",
+                "curves_pebble_walker-walk"):
+        assert (out / f"{png}.png").read_bytes()[:4] == b"\x89PNG"
+    assert not (out / "samplers_pebble_quadruped-walk.png").exists()
+
+
+def test_a_teacher_is_named_with_the_overrides_that_change_it():
+    base = {"env_id": "walker-walk", "ground_truth_reward": False, "max_feedback": 500, "feedback_per_session": 50,
+            "sampler": "entropy", "schedule": "decay"}
+    # saved values equal to the named teacher's own (a script may save them resolved) are no override
+    assert report.setting_of({**base, "teacher": "oracle", "teacher_beta": float("inf"), "teacher_gamma": 1.0,
+                              "teacher_eps_mistake": 0.0}) == ("pebble", "walker-walk", "oracle", "500/50", "entropy",
+                                                               "decay")
+    assert report.setting_of({**base, "teacher": "myopic", "teacher_gamma": 0.9, "teacher_eps_mistake": 0.1,
+                              "num_envs": 8})[:3] == ("prefppo", "walker-walk", "myopic(eps_mistake=0.1)")
+    assert report.setting_of({**base, "teacher": "stoc", "ground_truth_reward": True})[2:] == ("ground-truth", "-",
+                                                                                                "-", "-")
+
+
+def test_report_on_a_folder_without_runs_is_one_error_line(tmp_path):
+    result = run_report(tmp_path)
+    message = f"error: no runs (folders with a config.json) below {tmp_path.resolve()}"
+    assert result.returncode == 2 and result.stderr.strip() == message
+    assert not (tmp_path / "report").exists()
+
+
+def test_progress_estimates_time_left_from_the_runs_so_far(tmp_path):
+    progress = grid.Progress(waiting=3, finished_before=1, refused=[], concurrency=2, every=60,
+                             logs={"a": tmp_path / "a.log"})  # no log yet: no fraction of the running run
+    progress.start("a")
+    progress.running["a"] -= 100  # started 100 s ago
+    progress.durations = [300.0]  # one run of this grid took 300 s
+    # a: 200 s left; two waiting runs of 300 s each; two workers share 800 s
+    assert progress.time_left() == pytest.approx(400, abs=1)
