@@ -294,9 +294,6 @@ class Actor(nn.Module):
         pre_tanh = mean + log_std.exp() * torch.randn_like(mean)
         return torch.tanh(pre_tanh), tanh_gaussian_log_prob(mean, log_std, pre_tanh)
 
-    def act(self, obs):
-        return torch.tanh(self(obs)[0])
-
 
 class TwinCritic(nn.Module):
     """Two Q-networks, Q(s, a) -> (q1, q2)."""
@@ -352,22 +349,16 @@ def temperature_loss(log_alpha, log_prob, target_entropy: float) -> torch.Tensor
     return (log_alpha.exp() * (-log_prob.detach() - target_entropy)).mean()
 
 
-class NonFiniteError(Exception):
-    """A NaN or infinity in a loss or in what the environment returned; the message names it."""
-
-
 def optimize(optimizer, loss: torch.Tensor, name: str):
-    """One gradient step; a non-finite loss stops the run before the step, so the networks stay finite."""
+    """One gradient step; a non-finite loss stops the run before it, so the networks stay finite."""
     if not torch.isfinite(loss).all():
-        raise NonFiniteError(f"non-finite {name} ({loss.detach().flatten()[0].item()})")
+        raise FloatingPointError(f"non-finite {name} ({loss.detach().flatten()[0].item()})")
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
 
 
-class Batch(NamedTuple):
-    """Transitions sampled from the replay buffer, one row each."""
-
+class Batch(NamedTuple):  # transitions sampled from the replay buffer, one row each
     obs: torch.Tensor
     actions: torch.Tensor
     rewards: torch.Tensor
@@ -401,9 +392,7 @@ def soft_update(critic: nn.Module, critic_target: nn.Module, tau: float):
 
 
 class ReplayBuffer:
-    """Transitions on the training device. `rewards` holds the learned reward r_hat (relabelled after each reward
-    update), `true_rewards` the environment's; `added` counts every transition ever stored."""
-
+    """On the training device; `rewards` is r_hat (relabelled), `added` counts every transition ever stored."""
     fields = ("obs", "actions", "rewards", "true_rewards", "next_obs", "terminated")
 
     def __init__(self, capacity, obs_dim, action_dim, device):
@@ -424,9 +413,8 @@ class ReplayBuffer:
 
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
-    """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state
-    itself (its zero distance): the (k+1)-th smallest distance. Eq. (8) without the log (README).
-    Blocks of chunk x chunk distances keep the memory bounded; the k+1 nearest are merged per block."""
+    """Eq. (8) without the log (README): distance to the k-th nearest neighbour in `reference`, not counting the
+    state itself (the (k+1)-th smallest); chunk x chunk blocks bound the memory, the k+1 nearest merged per block."""
     kth = []
     for i in range(0, len(states), chunk):
         nearest = torch.empty(len(states[i : i + chunk]), 0, device=states.device)
@@ -438,15 +426,12 @@ def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: i
 
 
 def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor:
-    """Algorithm 2's r_int(s_t) for a SAC batch, before normalisation: the kNN distance of each batch state
-    s_t (obs, not next_obs; reference code: agent/sac.py) among all states in the buffer. s_t is stored there
-    itself, and knn_distance skips exactly that one zero distance."""
+    """Algorithm 2's r_int(s_t) before normalisation: kNN distance of the batch's s_t (obs, not next_obs; reference
+    code: agent/sac.py) among all states in the buffer (s_t is one of them: knn_distance skips its zero distance)."""
     return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
 
-class RunningMeanStd:
-    """Running mean and variance over batches (Chan et al.'s parallel update; the reference code's was wrong)."""
-
+class RunningMeanStd:  # Chan et al.'s parallel update (the reference code's was wrong)
     def __init__(self):
         self.mean, self.var, self.count = 0.0, 1.0, 0
 
@@ -463,8 +448,7 @@ class RunningMeanStd:
 
 
 def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
-    """PEBBLE's relabelling: r_hat = ensemble mean for every stored transition, including after the
-    buffer has wrapped (the reference code only relabelled the prefix up to the write position)."""
+    """PEBBLE's relabelling: r_hat = ensemble mean for every stored transition, the wrapped buffer's too."""
     with torch.no_grad():
         for i in range(0, buffer.size, chunk):
             obs_action = torch.cat([buffer.obs[i : i + chunk], buffer.actions[i : i + chunk]], dim=-1)
@@ -472,31 +456,27 @@ def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 163
 
 
 def usable_episodes(completed: list, buffer: ReplayBuffer, segment_len: int, recent: int) -> list:
-    """The query pool: (first transition number, length) of the last `recent` (0 = all) complete episodes still
-    whole in the buffer and long enough for a segment."""
+    """The query pool: the last `recent` (0 = all) complete episodes still whole in the buffer, long enough."""
     usable = [(s, n) for s, n in completed if n >= segment_len and buffer.added - s <= buffer.capacity]
     return usable[-recent:] if recent else usable
 
 
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
-    """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against soft targets
-    (1 - y, y); equal labels (y = 0.5) are the uniform target. segment_returns: (batch, 2)."""
+    """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against (1 - y, y), (batch, 2)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
     log_probs = F.log_softmax(segment_returns, dim=-1)
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
 def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[int, int]:
-    """(correct, counted) over strict labels only: an equal label has no right side to pick, so it is
-    not counted (the reference code counted it as 'first preferred', biasing the 97% early stop)."""
+    """(correct, counted) over strict labels: an equal label has no right side (the reference code counted it)."""
     strict = y != 0.5
     predicted_second = segment_returns[:, 1] > segment_returns[:, 0]
     return int((predicted_second == (y > 0.5))[strict].sum()), int(strict.sum())
 
 
 def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs) -> tuple[float, float]:
-    """Reward learning (Algorithm 3, the gradient steps on L^Reward): up to max_epochs passes over the
-    preference dataset, each member with its own shuffle; stop once the training accuracy passes 97%."""
+    """Algorithm 3, reward learning: up to max_epochs passes over D, one shuffle per member, until 97% accuracy."""
     n, accuracy, loss_value = len(y), float("nan"), float("nan")
     for _ in range(max_epochs):
         orders = [torch.randperm(n, device=y.device) for _ in reward_model.members]
@@ -520,9 +500,8 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
 
 
 def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes) -> int:
-    """How many labels the run asks for: the main loop holds session i at step pretrain_steps + 1 + i * feedback_every
-    while that is <= total_timesteps, asking session_sizes[i]. Assumes a complete episode at the end of pre-training
-    (DMC and Meta-World: 1000- and 500-step episodes, pre-training 10K steps); a later first session asks fewer."""
+    """Labels asked: session i at step pretrain_steps + 1 + i * feedback_every while <= total_timesteps (assumes a
+    complete episode by the end of pre-training, as on DMC and Meta-World; a later first session asks fewer)."""
     n_sessions = max(0, (total_timesteps - pretrain_steps - 1) // feedback_every + 1)
     return int(np.sum(session_sizes[:n_sessions]))
 
@@ -566,8 +545,9 @@ def resolve(args: Args) -> Args:
                              "older pebble.py, whose run this one cannot continue); start a new run")
         for name, default in ((field.name, field.default) for field in fields(Args)):
             if name not in RESUME_MAY_CHANGE and getattr(args, name) not in (default, saved[name]):
-                raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has {saved[name]!r}, "
-                                 f"got {getattr(args, name)!r}); start a new run for another configuration")
+                raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has "
+                                 f"{saved[name]!r}, got {getattr(args, name)!r}); start a new run for another "
+                                 "configuration")
         return Args(**{**saved, **{name: getattr(args, name) for name in RESUME_MAY_CHANGE}, "output_dir": args.resume})
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     teacher = make_teacher(args.teacher)
@@ -582,39 +562,29 @@ def resolve(args: Args) -> Args:
 
 def check_args(args: Args, episode_len: int) -> str | None:
     """The first problem with the configuration as one line, or None."""
-    pretrain = args.seed_steps + args.unsup_steps
-    checks = [
-        (args.seed >= 0, f"--seed must be >= 0, got {args.seed}"),
-        (args.teacher_beta >= 0, f"--teacher-beta must be >= 0 (inf = rational), got {args.teacher_beta}"),
-        (0 < args.teacher_gamma <= 1, f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}"),
-        *[(0 <= getattr(args, f"teacher_{name}") <= 1,
-           f"--teacher-{name.replace('_', '-')} must be in [0, 1], got {getattr(args, f'teacher_{name}')}")
-          for name in ("eps_mistake", "eps_skip", "eps_equal")],
-        (args.max_feedback >= 1, f"--max-feedback must be >= 1, got {args.max_feedback}"),
-        (1 <= args.feedback_per_session <= args.max_feedback, f"--feedback-per-session must be in "
-         f"[1, --max-feedback={args.max_feedback}], got {args.feedback_per_session}"),
-        (args.feedback_every >= 1, f"--feedback-every must be >= 1, got {args.feedback_every}"),
-        (1 <= args.segment_len <= episode_len, f"--segment-len must be in [1, {episode_len}] (the episode length "
-         f"of {args.env_id}), got {args.segment_len}"),
-        (args.seed_steps >= 0 and args.unsup_steps >= 0, "--seed-steps and --unsup-steps must be >= 0"),
-        (args.total_timesteps > pretrain,
-         f"--total-timesteps ({args.total_timesteps}) must exceed --seed-steps + --unsup-steps ({pretrain})"),
-        (args.buffer_size >= max(args.batch_size, episode_len),
-         f"--buffer-size must be >= max(batch size, episode length), got {args.buffer_size}"),
-        (min(args.hidden_dim, args.num_layers, args.batch_size, args.reward_batch_size, args.reward_ensemble_size) >= 1,
-         "--hidden-dim, --num-layers, --batch-size, --reward-batch-size and --reward-ensemble-size must be >= 1"),
-        (min(args.eval_every, args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
-         "--eval-every, --eval-episodes, --knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
-        (min(args.learning_rate, args.alpha_lr, args.reward_lr) > 0,
-         "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
-        (0 < args.gamma <= 1 and 0 < args.tau <= 1, "--gamma and --tau must be in (0, 1]"),
-        (args.init_temperature > 0, f"--init-temperature must be > 0, got {args.init_temperature}"),
-        (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
-        (args.target_update_every >= 1 and args.critic_reset_updates >= 0 and args.query_recent_episodes >= 0,
-         "--target-update-every must be >= 1, --critic-reset-updates and --query-recent-episodes >= 0"),
-        (args.checkpoint_every >= 0, f"--checkpoint-every must be >= 0, got {args.checkpoint_every}"),
+    a, pretrain = args, args.seed_steps + args.unsup_steps
+    checks = [  # (field, ok, the rule)
+        ("seed", a.seed >= 0, ">= 0"), ("teacher_beta", a.teacher_beta >= 0, ">= 0 (inf = rational)"),
+        ("teacher_gamma", 0 < a.teacher_gamma <= 1, "in (0, 1]"),
+        *[(n, 0 <= getattr(a, n) <= 1, "in [0, 1]") for n in ("teacher_eps_mistake", "teacher_eps_skip",
+                                                              "teacher_eps_equal")],
+        *[(n, getattr(a, n) >= 1, ">= 1") for n in (
+            "max_feedback", "feedback_every", "hidden_dim", "num_layers", "batch_size", "reward_batch_size",
+            "reward_ensemble_size", "eval_every", "eval_episodes", "knn_k", "candidate_multiplier", "reward_epochs",
+            "target_update_every")],
+        *[(n, getattr(a, n) >= 0, ">= 0") for n in ("seed_steps", "unsup_steps", "critic_reset_updates",
+                                                    "query_recent_episodes", "checkpoint_every")],
+        *[(n, getattr(a, n) > 0, "> 0") for n in ("learning_rate", "alpha_lr", "reward_lr", "init_temperature")],
+        *[(n, 0 < getattr(a, n) <= 1, "in (0, 1]") for n in ("gamma", "tau")],
+        ("label_smoothing", 0 <= a.label_smoothing < 1, "in [0, 1)"),
+        ("feedback_per_session", 1 <= a.feedback_per_session <= a.max_feedback,
+         f"in [1, --max-feedback={a.max_feedback}]"),
+        ("segment_len", 1 <= a.segment_len <= episode_len, f"in [1, {episode_len}] (the episode length of {a.env_id})"),
+        ("total_timesteps", a.total_timesteps > pretrain, f"> --seed-steps + --unsup-steps ({pretrain})"),
+        ("buffer_size", a.buffer_size >= max(a.batch_size, episode_len), ">= max(batch size, episode length)"),
     ]
-    return next((message for ok, message in checks if not ok), None)
+    return next((f"--{name.replace('_', '-')} must be {rule}, got {getattr(a, name)}" for name, ok, rule in checks
+                 if not ok), None)
 
 
 def fail(message: str, code: int = 2):
@@ -641,7 +611,8 @@ def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> d
             raise ValueError(f"--labels-from {file!r}: segments of shape {s['obs0'].shape[1:]} and actions "
                              f"{s['actions0'].shape[1:]} do not fit this run ({segment_len}, {obs_dim}) and "
                              f"({segment_len}, {action_dim})")
-    kept = {k: np.concatenate([s[k][s["keep"]] for s in sessions]) for k in ("obs0", "actions0", "obs1", "actions1", "y")}
+    kept = {key: np.concatenate([s[key][s["keep"]] for s in sessions])
+            for key in ("obs0", "actions0", "obs1", "actions1", "y")}
     n = len(kept["y"])
     return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": kept["y"].astype(np.float32),
             "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1),
@@ -675,7 +646,7 @@ def evaluate(actor, reward_model, env, seeds: list[int], device) -> dict:
         while not done:
             with torch.no_grad():
                 obs_t = torch.as_tensor(obs, device=device)
-                action = actor.act(obs_t[None])[0]
+                action = torch.tanh(actor(obs_t)[0])  # the mean action
                 if reward_model is not None:
                     learned_rewards.append(reward_model(torch.cat([obs_t, action])).mean().item())
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
@@ -690,19 +661,17 @@ def evaluate(actor, reward_model, env, seeds: list[int], device) -> dict:
 
 
 def seconds_per_update(args: Args, obs_dim: int, action_dim: int, repeats: int = 3) -> float:
-    """One SAC update's time on this CPU at the run's sizes, on throwaway networks and random data (the torch
-    random state is forked, so the run's own draws are untouched)."""
+    """One SAC update's time at the run's sizes, on throwaway networks and data (torch's random state forked)."""
     with torch.random.fork_rng(devices=[]):
         nets = [cls(obs_dim, action_dim, args.hidden_dim, args.num_layers) for cls in (Actor, TwinCritic, TwinCritic)]
-        log_alpha, n = torch.zeros((), requires_grad=True), args.batch_size
+        log_alpha = torch.zeros((), requires_grad=True)
         optimizers = [torch.optim.Adam(p) for p in (nets[0].parameters(), nets[1].parameters(), [log_alpha])]
-        batch = Batch(torch.randn(n, obs_dim), torch.rand(n, action_dim), torch.randn(n, 1), torch.randn(n, obs_dim),
-                      torch.zeros(n, 1))
-        times = [time.perf_counter()]
+        batch = Batch(*(torch.rand(args.batch_size, dim) for dim in (obs_dim, action_dim, 1, obs_dim, 1)))
+        times = []
         for _ in range(repeats + 1):  # the first one warms up
-            sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)
             times.append(time.perf_counter())
-        return (times[-1] - times[1]) / repeats
+            sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)
+        return (time.perf_counter() - times[1]) / repeats
 
 
 @dataclass
@@ -758,9 +727,9 @@ if __name__ == "__main__":
                 eval_env.reset(seed=0)
                 eval_env.render()
         except Exception as error:
-            print(f"error: --capture-video cannot render ({type(error).__name__}: {(str(error) or '-').splitlines()[0]})"
-                  "; it needs moviepy and, without a display, MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU)",
-                  file=sys.stderr, flush=True)
+            print(f"error: --capture-video cannot render ({type(error).__name__}: "
+                  f"{(str(error) or '-').splitlines()[0]}); it needs moviepy and, without a display, MUJOCO_GL=egl "
+                  "(GPU) or MUJOCO_GL=osmesa (CPU)", file=sys.stderr, flush=True)
             os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
     run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
     output_dir = args.output_dir or os.path.join("runs", run_name)
@@ -903,7 +872,7 @@ if __name__ == "__main__":
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
                     and progress.sessions_done < len(session_sizes) and (usable := usable_episodes(
                         progress.completed_episodes, buffer, args.segment_len, args.query_recent_episodes))):
-                session_start, size = progress.overhead_seconds, int(session_sizes[progress.sessions_done])
+                size = int(session_sizes[progress.sessions_done])
                 with progress.overhead():
                     sampler = args.sampler if progress.reward_ready else "uniform"  # reference code: the first uniform
                     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
@@ -913,7 +882,7 @@ if __name__ == "__main__":
                                   % buffer.capacity for e, s in ((e0, s0), (e1, s1)))
                     features = None  # coverage (appendix): the states of both segments, concatenated
                     if args.sampler.endswith("coverage"):
-                        features = torch.cat([buffer.obs[idx0].flatten(1), buffer.obs[idx1].flatten(1)], 1).cpu().numpy()
+                        features = torch.cat([buffer.obs[i].flatten(1) for i in (idx0, idx1)], 1).cpu().numpy()
                     chosen = np.arange(size)  # uniform: random_pairs drew `size` pairs
                     if sampler != "uniform":
                         with torch.no_grad():
@@ -923,21 +892,24 @@ if __name__ == "__main__":
                         chosen = select(sampler, size, probs=torch.sigmoid(r1 - r0)[..., 0].cpu().numpy(),
                                         features=features, labeled_features=labelled, rng=rng)
                     idx0, idx1 = idx0[chosen], idx1[chosen]
-                    segments = {f"{key}{i}": part[idx].cpu().numpy() for i, idx in enumerate((idx0, idx1)) for key, part
-                                in (("obs", buffer.obs), ("actions", buffer.actions), ("rewards", buffer.true_rewards[:, 0]))}
+                    parts = (("obs", buffer.obs), ("actions", buffer.actions), ("rewards", buffer.true_rewards[:, 0]))
+                    segments = {f"{key}{i}": part[idx].cpu().numpy() for i, idx in enumerate((idx0, idx1))
+                                for key, part in parts}
                     # Appendix, adaptive thresholds: from the mean true return of the last 10 training episodes
                     teacher.set_thresholds(float(np.mean(progress.recent_returns[-10:])), args.segment_len, episode_len)
                     y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
                     save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
                                 step=global_step, y=y, keep=keep, **segments)
-                    progress.feedback_used, progress.sessions_done = progress.feedback_used + size, progress.sessions_done + 1
+                    progress.feedback_used += size
+                    progress.sessions_done += 1
                     kept = torch.as_tensor(keep, device=device)
                     for key, idx in (("inputs0", idx0), ("inputs1", idx1)):
                         preferences[key].append(torch.cat([buffer.obs[idx], buffer.actions[idx]], -1)[kept])
                     preferences["y"].append(torch.as_tensor(y[keep], dtype=torch.float32, device=device))
                     if features is not None:
                         preferences["features"].append(features[chosen][keep])
-                    n_labels, skipped, equal = sum(map(len, preferences["y"])), int((~keep).sum()), int((y[keep] == 0.5).sum())
+                    n_labels = sum(len(part) for part in preferences["y"])
+                    skipped, equal = int((~keep).sum()), int((y[keep] == 0.5).sum())
                     for name, value in (("labels", progress.feedback_used), ("skipped", skipped), ("equal", equal)):
                         writer.add_scalar(f"feedback/{name}", value, global_step)
                     if n_labels:
@@ -947,11 +919,11 @@ if __name__ == "__main__":
                         progress.relabels += 1
                         writer.add_scalar("reward/loss", loss, global_step)
                         writer.add_scalar("reward/accuracy", accuracy, global_step)
-                        print(f"step {global_step}: feedback session {progress.sessions_done}: {size} queries ({skipped} "
-                              f"skipped, {equal} equal), reward model trained on {n_labels} labels, accuracy {accuracy:.3f}")
+                        print(f"step {global_step}: feedback session {progress.sessions_done}: {size} queries "
+                              f"({skipped} skipped, {equal} equal), reward model trained on {n_labels} labels, "
+                              f"accuracy {accuracy:.3f}")
                     else:  # every query so far was skipped: nothing to learn from yet
                         print(f"step {global_step}: all {size} queries skipped, the reward model stays as it is")
-                writer.add_scalar("time/feedback_session_seconds", progress.overhead_seconds - session_start, global_step)
                 reset_critic = n_labels > 0 and not progress.reward_ready
                 progress.reward_ready = progress.reward_ready or n_labels > 0
                 progress.next_feedback_step = global_step + args.feedback_every
@@ -975,7 +947,7 @@ if __name__ == "__main__":
                     action = actor.sample(torch.as_tensor(obs, device=device)[None])[0][0].cpu().numpy()
             next_obs, true_reward, terminated, truncated, info = env.step(action)
             if not (math.isfinite(true_reward) and np.isfinite(next_obs).all()):
-                raise NonFiniteError(f"non-finite reward ({true_reward}) or observation from the environment")
+                raise FloatingPointError(f"non-finite reward ({true_reward}) or observation from the environment")
             reward = float(true_reward) if args.ground_truth_reward else 0.0
             if progress.reward_ready and not args.ground_truth_reward:  # Algorithm 3: store r_hat(s_t, a_t)
                 with progress.overhead(), torch.no_grad():
@@ -1045,7 +1017,7 @@ if __name__ == "__main__":
                 print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                       f"continue with --resume {output_dir}", flush=True)
                 sys.exit(128 + stop[0])
-    except NonFiniteError as error:
+    except FloatingPointError as error:  # a NaN or infinity in a loss or from the environment
         save_checkpoint(checkpoint_path, checkpoint_state())  # checked before the optimizer step: still finite
         fail(f"{error} at step {progress.global_step}; run stopped, its last finite state is in {checkpoint_path} "
              f"and its labels in {output_dir}/labels", code=3)

@@ -455,11 +455,11 @@ BAD_INPUTS = [
     (["--teacher-beta", "-1"], "--teacher-beta must be >= 0"),
     (["--teacher-eps-mistake", "1.5"], "--teacher-eps-mistake must be in [0, 1]"),
     (["--teacher-eps-skip", "-0.1"], "--teacher-eps-skip must be in [0, 1]"),
-    (["--total-timesteps", "500"], "--total-timesteps (500) must exceed"),
+    (["--total-timesteps", "500"], "--total-timesteps must be > --seed-steps + --unsup-steps (10000), got 500"),
     (["--feedback-every", "0"], "--feedback-every must be >= 1"),
     (["--label-smoothing", "1"], "--label-smoothing must be in [0, 1)"),
-    (["--learning-rate", "0"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
-    (["--alpha-lr", "-1e-4"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
+    (["--learning-rate", "0"], "--learning-rate must be > 0, got 0.0"),
+    (["--alpha-lr", "-1e-4"], "--alpha-lr must be > 0, got -0.0001"),
 ]
 
 
