@@ -4,15 +4,20 @@ and bad input that must end with one line and a non-zero exit before any trainin
 
 import json
 import math
+import signal
+import threading
+import typing
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
 import pebble
-from samplers import schedule_sizes
-from sim_teacher import make_teacher
-from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
+from samplers import SAMPLERS, SCHEDULES, schedule_sizes
+from sim_teacher import TEACHERS, make_teacher
+from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
+                           session_lines, start_script)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
         "--reward-batch-size", "32", "--eval-episodes", "1"]
@@ -23,6 +28,67 @@ def run_pebble(out, *flags, timeout=600):
 
 
 # ---------------------------------------------------------------- unit tests of the quiet parts
+
+
+def test_tanh_gaussian_log_prob_matches_torch_distributions():
+    torch.manual_seed(0)
+    mean, log_std = torch.randn(64, 3), torch.rand(64, 3) * 4 - 3
+    pre_tanh = mean + log_std.exp() * torch.randn(64, 3) * 2  # far into the tails too, where tanh saturates
+    squashed = torch.distributions.TransformedDistribution(
+        torch.distributions.Normal(mean.double(), log_std.exp().double()), torch.distributions.TanhTransform())
+    expected = squashed.log_prob(torch.tanh(pre_tanh.double()).clamp(-1 + 1e-12, 1 - 1e-12)).sum(-1, keepdim=True)
+    got = pebble.tanh_gaussian_log_prob(mean, log_std, pre_tanh)
+    moderate = pre_tanh.abs().max(-1).values < 3  # float64 tanh is exact enough there to invert
+    torch.testing.assert_close(got[moderate].double(), expected[moderate], rtol=1e-4, atol=1e-4)
+    # by hand, one dimension, u = 0, std 1: log N(0; 0, 1) - log(1 - tanh(0)^2) = -log(2 pi) / 2
+    assert pebble.tanh_gaussian_log_prob(torch.zeros(1, 1), torch.zeros(1, 1), torch.zeros(1, 1)).item() == \
+        pytest.approx(-0.5 * math.log(2 * math.pi))
+
+
+def test_sac_critic_loss_by_hand():
+    q1, q2 = torch.tensor([[1.0], [0.0]]), torch.tensor([[2.0], [0.0]])
+    rewards, terminated = torch.tensor([[1.0], [1.0]]), torch.tensor([[0.0], [1.0]])
+    next_q, next_log_prob = torch.tensor([[3.0], [100.0]]), torch.tensor([[-1.0], [5.0]])
+    # targets: 1 + 0.5 * (3 - 0.2 * -1) = 2.6; the second terminated: 1 (nothing bootstrapped)
+    # q1 errors 1.6, 1 -> mean 1.78; q2 errors 0.6, 1 -> mean 0.68
+    loss = pebble.sac_critic_loss(q1, q2, rewards, terminated, next_q, next_log_prob, alpha=0.2, gamma=0.5)
+    assert loss.item() == pytest.approx((1.6**2 + 1) / 2 + (0.6**2 + 1) / 2)
+
+
+def test_sac_actor_loss_uses_the_smaller_critic():
+    log_prob = torch.tensor([[-1.0], [2.0]])
+    q1, q2 = torch.tensor([[5.0], [0.0]]), torch.tensor([[3.0], [4.0]])
+    # (0.5 * -1 - 3 + 0.5 * 2 - 0) / 2 = -1.25
+    assert pebble.sac_actor_loss(log_prob, q1, q2, alpha=0.5).item() == pytest.approx(-1.25)
+
+
+def test_temperature_loss_raises_alpha_when_entropy_is_below_target():
+    log_alpha = torch.tensor(math.log(0.1), requires_grad=True)
+    log_prob = torch.tensor([[1.0], [3.0]])  # entropy estimate -2, below the target -1 (one action dimension)
+    loss = pebble.temperature_loss(log_alpha, log_prob, target_entropy=-1.0)
+    assert loss.item() == pytest.approx(0.1 * (-2 + 1))  # alpha * mean(-log pi - target)
+    loss.backward()
+    assert log_alpha.grad.item() == pytest.approx(-0.1)  # gradient descent raises log alpha
+    high_entropy = pebble.temperature_loss(log_alpha, torch.tensor([[-3.0]]), target_entropy=-1.0)
+    assert high_entropy.item() == pytest.approx(0.1 * 4)  # entropy 3 above -1: descent lowers alpha
+
+
+def test_choices_are_the_modules_names():
+    annotations = pebble.Args.__annotations__
+    assert typing.get_args(annotations["teacher"]) == tuple(TEACHERS)
+    assert typing.get_args(annotations["sampler"]) == tuple(SAMPLERS)
+    assert typing.get_args(annotations["schedule"]) == tuple(SCHEDULES)
+
+
+@pytest.mark.parametrize("env_id", ["quadruped-walk", "button-press", "Pendulum-v1"])
+def test_env_adapter_has_float32_spaces_and_warns_nothing(env_id):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env, _ = pebble.make_env(env_id)
+        obs, _ = env.reset(seed=0)
+    assert not [str(w.message) for w in caught if "gymnasium" in w.filename or "Box" in str(w.message)]
+    assert env.observation_space.dtype == env.action_space.dtype == obs.dtype == np.float32
+    assert np.all(env.action_space.low == -1) and np.all(env.action_space.high == 1)
 
 
 def test_knn_distance_is_kth_neighbour_not_counting_the_state_itself():
@@ -79,11 +145,13 @@ def test_actor_and_critic_start_orthogonal_with_zero_biases(obs_dim, action_dim,
     assert not torch.allclose(default.weight @ default.weight.T, torch.eye(hidden_dim), atol=1e-2)
 
 
-def test_query_sampler_and_teacher_draw_independent_streams_from_one_seed():
-    sampler_seed, teacher_seed = pebble.numpy_seeds(1)
+def test_query_sampler_teacher_and_random_actions_draw_independent_streams_from_one_seed():
+    sampler_seed, teacher_seed, action_seed = pebble.numpy_seeds(1)
     sampler_draws = np.random.default_rng(sampler_seed).random(5)
     teacher_draws = make_teacher("stoc", seed=teacher_seed).rng.random(5)
-    assert not np.any(sampler_draws == teacher_draws)
+    action_draws = np.random.default_rng(action_seed).random(5)
+    assert not np.any(sampler_draws == teacher_draws) and not np.any(action_draws == sampler_draws)
+    assert not np.any(action_draws == teacher_draws)
     # one seed for both, as before, gave the teacher the sampler's very numbers
     np.testing.assert_array_equal(np.random.default_rng(1).random(5), make_teacher("stoc", seed=1).rng.random(5))
     again = pebble.numpy_seeds(1)  # reproducible from the run seed, and another seed gives other streams
@@ -92,14 +160,25 @@ def test_query_sampler_and_teacher_draw_independent_streams_from_one_seed():
     assert not np.any(np.random.default_rng(pebble.numpy_seeds(2)[0]).random(5) == sampler_draws)
 
 
-def test_labels_spent_counts_the_sessions_that_fit_before_the_end():
+def test_episode_seeds_differ_between_run_seeds_streams_and_episodes():
+    def seeds(run_seed):
+        return {pebble.episode_seed(run_seed, stream, n) for stream in (pebble.TRAIN_STREAM, pebble.EVAL_STREAM)
+                for n in range(2000)}
+
+    first, second = seeds(1), seeds(2)
+    assert len(first) == len(second) == 4000  # no two episodes of a run (training or evaluation) share a seed
+    assert not first & second  # runs with different seeds share none (seed + i schemes shared nearly all)
+    assert pebble.episode_seed(1, 0, 7) == pebble.episode_seed(1, 0, 7)  # reproducible
+
+
+def test_planned_labels_counts_the_sessions_that_fit_before_the_end():
     sizes = np.array([5, 5, 5, 5, 5])
     # sessions at steps 11, 41, 71 (101 is past the end): 3 x 5
-    assert pebble.labels_spent(100, 10, 30, sizes) == 15
-    assert pebble.labels_spent(71, 10, 30, sizes) == 15  # a session on the last step still happens
-    assert pebble.labels_spent(70, 10, 30, sizes) == 10
-    assert pebble.labels_spent(10_000, 10, 30, sizes) == 25  # never more than the schedule's budget
-    assert pebble.labels_spent(100, 10, 30, np.array([8, 4, 2, 1])) == 14  # a decaying schedule: its first 3
+    assert pebble.planned_labels(100, 10, 30, sizes) == 15
+    assert pebble.planned_labels(71, 10, 30, sizes) == 15  # a session on the last step still happens
+    assert pebble.planned_labels(70, 10, 30, sizes) == 10
+    assert pebble.planned_labels(10_000, 10, 30, sizes) == 25  # never more than the schedule's budget
+    assert pebble.planned_labels(100, 10, 30, np.array([8, 4, 2, 1])) == 14  # a decaying schedule: its first 3
 
 
 @pytest.mark.parametrize("schedule", ["uniform", "decay", "increase"])
@@ -107,18 +186,18 @@ def test_presets_spend_their_whole_budget(schedule):
     pretrain = pebble.Args.seed_steps + pebble.Args.unsup_steps
     for preset in (pebble.METAWORLD_PRESET, pebble.DMC_PRESET, pebble.PRESETS["quadruped-walk"]):
         sizes = schedule_sizes(schedule, preset["max_feedback"], preset["feedback_per_session"])
-        spent = pebble.labels_spent(preset["total_timesteps"], pretrain, preset["feedback_every"], sizes)
+        spent = pebble.planned_labels(preset["total_timesteps"], pretrain, preset["feedback_every"], sizes)
         assert spent == preset["max_feedback"]  # Meta-World: 10,000 in 200 sessions; walker-walk: 1000
     # the paper's (and reference code's) every 5000 steps on Meta-World: 198 sessions of 50 fit in 1M steps
-    assert pebble.labels_spent(1_000_000, pretrain, 5000, schedule_sizes("uniform", 10_000, 50)) == 9900
+    assert pebble.planned_labels(1_000_000, pretrain, 5000, schedule_sizes("uniform", 10_000, 50)) == 9900
 
 
-def reset_draws(env, n: int) -> np.ndarray:
-    """The random vector of n resets: Meta-World's task variation (object and goal positions; MT1's 50 tasks are
-    50 fixed ones). Button-press moves its goal with it, sweep-into only its object."""
+def reset_draws(env, n: int, seed: int = 1, stream: int = pebble.TRAIN_STREAM) -> np.ndarray:
+    """The random vector of n seeded resets: Meta-World's task variation (object and goal positions; MT1's 50 tasks
+    are 50 fixed ones). Button-press moves its goal with it, sweep-into only its object."""
     draws = []
-    for _ in range(n):
-        obs, _ = env.reset()
+    for episode in range(n):
+        obs, _ = env.reset(seed=pebble.episode_seed(seed, stream, episode))
         draws.append(env.unwrapped._last_rand_vec.copy())
         assert np.all(obs[-3:] == 0) and np.any(env.unwrapped._target_pos != 0)  # the goal is hidden (reference)
     return np.array(draws)
@@ -129,11 +208,11 @@ def test_metaworld_train_and_eval_goals_are_fresh_draws_from_the_whole_range(env
     from scipy import stats
 
     n = 100
-    train = reset_draws(pebble.make_env(env_id, seed=1)[0], n)
-    evaluation = reset_draws(pebble.make_env(env_id, seed=1 + 10_000)[0], n)  # the run's evaluation env
+    train = reset_draws(pebble.make_env(env_id)[0], n)
+    evaluation = reset_draws(pebble.make_env(env_id)[0], n, stream=pebble.EVAL_STREAM)  # the run's evaluation env
     # a fresh draw at every reset: MT1 alone draws from 50 fixed vectors, other ones for the eval env's seed
     assert len(np.unique(train, axis=0)) == len(np.unique(evaluation, axis=0)) == n
-    space = pebble.make_env(env_id, seed=1)[0].unwrapped._random_reset_space
+    space = pebble.make_env(env_id)[0].unwrapped._random_reset_space
     for draws in (train, evaluation):
         assert np.all((space.low <= draws) & (draws <= space.high))
     for i in np.flatnonzero(space.high > space.low):  # each coordinate that varies: uniform over its whole range
@@ -148,7 +227,8 @@ def test_metaworld_train_and_eval_goals_are_fresh_draws_from_the_whole_range(env
 
 
 def test_metaworld_goals_are_reproducible_from_the_seed():
-    first, again, other = (reset_draws(pebble.make_env("button-press", seed)[0], 5) for seed in (3, 3, 4))
+    env = pebble.make_env("button-press")[0]
+    first, again, other = (reset_draws(env, 5, seed) for seed in (3, 3, 4))
     np.testing.assert_array_equal(first, again)
     assert not np.any(np.all(first == other, axis=1))
 
@@ -343,9 +423,12 @@ def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rat
 
 
 def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
-    flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy"]
+    flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy", "--no-cuda"]
     first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
     assert first.returncode == second.returncode == 0
+    assert "\ndevice: cpu (--no-cuda)\n" in first.stdout
+    assert "note: one SAC update" not in first.stdout  # small networks: no projection line
+    assert "\n  sampler: entropy\n  schedule: uniform\n" in first.stdout  # the configuration, one key per line
     assert "note: only 20 of the 30 labels of --max-feedback fit in 800 steps" in first.stdout  # sessions at 401, 701
     assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
 
@@ -355,9 +438,15 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
 BAD_INPUTS = [
     (["--env-id", "nowhere-walk"], "--env-id"),
     (["--env-id", "nomodule_xyz:Thing-v0"], "--env-id"),
-    (["--teacher", "sleepy"], "--teacher 'sleepy' is not one of oracle, stoc, mistake, skip, equal, myopic"),
-    (["--sampler", "best"], "--sampler 'best' is not one of uniform"),
-    (["--schedule", "random"], "--schedule 'random' is not one of uniform, decay, increase"),
+    (["--teacher", "sleepy"], "invalid choice 'sleepy' for argument '--teacher'. Expected one of ('oracle', 'stoc', "
+                              "'mistake', 'skip', 'equal', 'myopic')"),
+    (["--sampler", "best"], "invalid choice 'best' for argument '--sampler'. Expected one of ('uniform', "),
+    (["--schedule", "random"], "invalid choice 'random' for argument '--schedule'. Expected one of ('uniform', "
+                               "'decay', 'increase')"),
+    (["--seed", "abc"], "Error parsing --seed: invalid literal for int() with base 10: 'abc'"),
+    (["--max-feedback", "many"], "Error parsing --max-feedback:"),
+    (["--no-such-flag"], "Unrecognized options: --no-such-flag"),
+    (["--seed", "-1"], "--seed must be >= 0"),
     (["--max-feedback", "-5"], "--max-feedback must be >= 1"),
     (["--max-feedback", "100", "--feedback-per-session", "200"], "--feedback-per-session must be in [1, --max-feedback=100]"),
     (["--segment-len", "5000"], "--segment-len must be in [1, 1000]"),
@@ -366,11 +455,11 @@ BAD_INPUTS = [
     (["--teacher-beta", "-1"], "--teacher-beta must be >= 0"),
     (["--teacher-eps-mistake", "1.5"], "--teacher-eps-mistake must be in [0, 1]"),
     (["--teacher-eps-skip", "-0.1"], "--teacher-eps-skip must be in [0, 1]"),
-    (["--total-timesteps", "500"], "--total-timesteps (500) must exceed"),
+    (["--total-timesteps", "500"], "--total-timesteps must be > --seed-steps + --unsup-steps (10000), got 500"),
     (["--feedback-every", "0"], "--feedback-every must be >= 1"),
     (["--label-smoothing", "1"], "--label-smoothing must be in [0, 1)"),
-    (["--learning-rate", "0"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
-    (["--alpha-lr", "-1e-4"], "--learning-rate, --alpha-lr and --reward-lr must be > 0"),
+    (["--learning-rate", "0"], "--learning-rate must be > 0, got 0.0"),
+    (["--alpha-lr", "-1e-4"], "--alpha-lr must be > 0, got -0.0001"),
 ]
 
 
@@ -388,3 +477,30 @@ def test_existing_run_directory_is_not_overwritten(tmp_path):
     result = run_pebble(out, *PENDULUM, timeout=120)
     assert result.returncode != 0 and "already holds a run" in result.stderr and "Traceback" not in result.stderr
     assert (out / "eval.csv").read_text() == "precious\n"
+
+
+def test_help_lists_the_choices():
+    result = run_script("pebble.py", "unused", "--help", timeout=120)
+    assert result.returncode == 0 and "{oracle,stoc,mistake,skip,equal,myopic}" in result.stdout
+    assert "--cuda, --no-cuda" in result.stdout
+
+
+def test_paper_sizes_on_a_cpu_print_the_projected_time_first(tmp_path):
+    process = start_script("pebble.py", tmp_path / "run", "--env-id", "walker-walk", "--no-cuda")
+    watchdog = threading.Timer(300, process.kill)  # the run itself would take days: stopped after the line
+    watchdog.start()
+    try:
+        lines = []
+        for line in process.stdout:
+            lines.append(line)
+            if line.startswith("note: one SAC update"):
+                break
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.communicate()
+        watchdog.cancel()
+    note = lines[-1]
+    assert note.startswith("note: one SAC update of this size takes ") and " hours; use a GPU, or the README's CPU " \
+        "scale: python pebble.py --env-id walker-walk --total-timesteps 100000 --hidden-dim 256" in note
+    hours = float(note.split("needs about ")[1].split(" hours")[0])
+    assert hours >= 1  # 500K updates of 1024 x 2 networks, batch 1024: never under an hour on a CPU

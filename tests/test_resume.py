@@ -92,10 +92,15 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path
     assert_same_run(out, uninterrupted[script])  # --checkpoint-every changes nothing in the experiment
 
 
+# pebble.py: save_checkpoint(path, state); prefppo.py: atomic_torch_save(obj, path)
+SAVE_CALLS = {pebble: "save_checkpoint({path!r}, {obj})", prefppo: "atomic_torch_save({obj}, {path!r})"}
+
+
 @pytest.mark.parametrize("module", [pebble, prefppo])
 def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, tmp_path):
     path = tmp_path / "checkpoint.pt"
-    module.atomic_torch_save({"step": 1, "weights": torch.ones(10)}, str(path))
+    save, first = SAVE_CALLS[module], {"step": 1, "weights": torch.ones(10)}
+    pebble.save_checkpoint(str(path), first) if module is pebble else module.atomic_torch_save(first, str(path))
     # a second write killed half-way (SIGKILL from inside torch.save, after some bytes are out)
     code = (f"import os, signal, torch, {module.__name__} as m\n"
             "real_open = open\n"
@@ -105,27 +110,36 @@ def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(modu
             "    def __exit__(self, *a): pass\n"
             "    def write(self, data): self.f.write(bytes(data)[:1000]); self.f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n"
             "m.open = HalfWritten\n"
-            f"m.atomic_torch_save({{'step': 2}}, {str(path)!r})\n")
+            f"m.{save.format(path=str(path), obj={'step': 2})}\n")
     killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
     assert killed.returncode == -signal.SIGKILL
     assert torch.load(path, weights_only=False)["step"] == 1
 
 
 @pytest.mark.parametrize("env_id", ["walker-walk", "button-press", "tests.toy_envs:ConstantPenalty-v0"])
-def test_env_state_continues_the_episode_exactly(env_id):
-    env, episode_len = pebble.make_env(env_id, seed=1)
-    for _ in range(7):
-        env.step(env.action_space.sample())
-    copy, _ = pebble.make_env(env_id, seed=99)  # another seed: everything must come from the state
-    pebble.load_env_state(copy, pebble.env_state(env))
-    for _ in range(episode_len + 50):  # the rest of this episode, the reset, the next one
-        action = env.action_space.sample()
-        np.testing.assert_array_equal(copy.action_space.sample(), action)
-        step, copy_step = env.step(action), copy.step(action)
-        np.testing.assert_array_equal(step[0], copy_step[0])
-        assert step[1] == copy_step[1]
-        if step[2] or step[3]:
-            np.testing.assert_array_equal(env.reset()[0], copy.reset()[0])
+def test_seeded_reset_and_replayed_actions_put_the_env_back_exactly(env_id):
+    """pebble's resume: a fresh env, reset with the current episode's seed and given the episode's actions so far,
+    continues exactly as the env that lived through earlier episodes (MuJoCo is deterministic)."""
+    rng = np.random.default_rng(0)
+    env, episode_len = pebble.make_env(env_id)
+    env.reset(seed=pebble.episode_seed(1, 0, 0))
+    for _ in range(episode_len):  # a whole earlier episode: the living env has history the fresh one lacks
+        env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+    env.reset(seed=pebble.episode_seed(1, 0, 1))
+    actions = rng.uniform(-1, 1, (episode_len, *env.action_space.shape)).astype(np.float32)
+    for action in actions[:7]:
+        env.step(action)
+    replayed, _ = pebble.make_env(env_id)
+    replayed.reset(seed=pebble.episode_seed(1, 0, 1))
+    for action in actions[:7]:
+        replayed.step(action)
+    for action in actions[7:]:  # the rest of this episode
+        step, replayed_step = env.step(action), replayed.step(action)
+        np.testing.assert_array_equal(step[0], replayed_step[0])
+        assert step[1:4] == replayed_step[1:4]
+    other, _ = pebble.make_env(env_id)  # and the seed matters: another episode's seed starts elsewhere
+    assert not np.array_equal(other.reset(seed=pebble.episode_seed(1, 0, 2))[0], replayed.reset(
+        seed=pebble.episode_seed(1, 0, 1))[0])
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

@@ -51,9 +51,10 @@ def test_pebble_records_a_video_and_evaluates_as_without(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     assert run_script("pebble.py", without, *PEBBLE_TINY).returncode == 0
     assert [row["step"] for row in eval_rows(with_video)] == ["1200"]
-    assert [p.name for p in (with_video / "videos").iterdir()] == ["step_1200.mp4"]
-    assert video_frames(with_video / "videos" / "step_1200.mp4") == 1000  # a whole DMC episode
-    assert eval_curve(with_video) == eval_curve(without)  # the recorded episode is an extra one
+    # RecordVideo on the evaluation env: the first evaluation episode, named by the step and the env's episode number
+    assert [p.name for p in (with_video / "videos").iterdir()] == ["step_1200-episode-0.mp4"]
+    assert video_frames(with_video / "videos" / "step_1200-episode-0.mp4") == 1001  # the reset frame + 1000 steps
+    assert eval_curve(with_video) == eval_curve(without)  # rendering does not move the simulation
 
 
 @needs_egl
@@ -70,20 +71,20 @@ def test_prefppo_records_a_video_of_an_episode_that_terminates(tmp_path):
 @pytest.mark.parametrize("env_id", ["walker-walk", "button-press"])
 def test_make_env_renders_rgb_frames(env_id):
     """RecordVideo records whatever render() returns: DMC through dm_control, Meta-World through Gymnasium."""
-    code = (f"import pebble; env, _ = pebble.make_env({env_id!r}, 0, render_mode='rgb_array'); env.reset(); "
+    code = (f"import pebble; env, _ = pebble.make_env({env_id!r}, render_mode='rgb_array'); env.reset(seed=0); "
             "frame = env.render(); print(frame.shape, frame.dtype, int(frame.std() > 0))")
     probe = subprocess.run([sys.executable, "-c", code], env=ENV | {"MUJOCO_GL": "egl"}, capture_output=True, text=True)
     height, width = (240, 320) if env_id == "walker-walk" else (480, 480)
     assert probe.stdout.strip() == f"({height}, {width}, 3) uint8 1", probe.stderr[-2000:]
 
 
-@pytest.mark.parametrize("script", [pebble, prefppo])
-def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script):
-    """Videos are extra episodes outside the evaluation, so they do not change the experiment."""
+@pytest.mark.parametrize("script, resume", [(pebble, "resolve"), (prefppo, "resumed_args")])
+def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script, resume):
+    """Rendering does not change the experiment, so videos may be switched on for the rest of a run."""
     saved = script.resolve(script.Args(output_dir=str(tmp_path)))
     (tmp_path / "config.json").write_text(json.dumps(asdict(saved)))
     (tmp_path / "checkpoint.pt").touch()
-    resumed = script.resumed_args(script.Args(resume=str(tmp_path), capture_video=True))
+    resumed = getattr(script, resume)(script.Args(resume=str(tmp_path), capture_video=True))
     assert resumed.capture_video and asdict(resumed) == asdict(saved) | {"capture_video": True, "resume": str(tmp_path)}
     with pytest.raises(ValueError, match="--seed cannot change"):
-        script.resumed_args(script.Args(resume=str(tmp_path), seed=saved.seed + 1))
+        getattr(script, resume)(script.Args(resume=str(tmp_path), seed=saved.seed + 1))
