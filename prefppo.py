@@ -160,20 +160,18 @@ PRESETS = {
 # Environments
 class DMCEnv(gym.Env):
     """A dm_control suite task as a Gymnasium env: flat float32 observations, episodes end by truncation;
-    reset(seed=s) re-seeds the task's random state, so the episode is a function of s."""
+    reset(seed=s) re-seeds the task's random state, so the episode is a function of s and the actions."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
     def __init__(self, domain: str, task: str, render_mode: str | None = None):
         from dm_control import suite
 
-        self.dmc = suite.load(domain, task)
-        self.render_mode = render_mode
+        self.dmc, self.render_mode = suite.load(domain, task), render_mode
         obs_dim = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values())
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         spec = self.dmc.action_spec()
         self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32), spec.maximum.astype(np.float32))
-        self.max_episode_steps = int(self.dmc._step_limit)
 
     def _flat(self, observation):
         return np.concatenate([np.asarray(v, dtype=np.float32).ravel() for v in observation.values()])
@@ -193,8 +191,7 @@ class DMCEnv(gym.Env):
 
 
 class SeededMetaWorld(gym.Wrapper):
-    """Meta-World's reset ignores its seed argument; here reset(seed=s) seeds the generator of the object and
-    goal positions first, so the episode is a function of s."""
+    """Meta-World's reset ignores `seed`: here it seeds the generator of object and goal positions first."""
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
@@ -209,47 +206,37 @@ def env_kind(env_id: str) -> str:
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
 
-    domain, _, task = env_id.partition("-")
-    if (domain, task) in suite.ALL_TASKS:
+    if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
     if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
         return "metaworld"
     module, _, gym_id = env_id.rpartition(":")  # "my_package:MyEnv-v0" registers MyEnv-v0 on import
-    if module:
-        try:
-            importlib.import_module(module)
-        except ImportError as error:
-            raise ValueError(f"--env-id {env_id!r}: cannot import {module!r} ({error})") from None
+    try:
+        importlib.import_module(module) if module else None
+    except ImportError as error:
+        raise ValueError(f"--env-id {env_id!r}: cannot import {module!r} ({error})") from None
     if gym_id in gym.registry:
         return "gym"
-    raise ValueError(
-        f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), "
-        "a Meta-World v3 task (e.g. button-press) or a registered Gymnasium id (optionally module:id)"
-    )
-
-
-def float32_observation(observation) -> np.ndarray:
-    return np.asarray(observation, dtype=np.float32)
+    raise ValueError(f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), a Meta-World v3 task "
+                     "(e.g. button-press) or a registered Gymnasium id (optionally module:id)")
 
 
 def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]:
-    """Returns (env, episode length T); actions rescaled to [-1, 1], observations flat float32. Every reset
-    is seeded by the caller (episode_seed): the env carries nothing from one episode to the next."""
+    """(env, episode length T): actions rescaled to [-1, 1], observations flat float32. Every reset is
+    seeded by the caller (episode_seed), so nothing carries over from one episode to the next."""
     kind = env_kind(env_id)
     if kind == "dmc":
         env = DMCEnv(*env_id.split("-", 1), render_mode)
-        episode_len = env.max_episode_steps
+        episode_len = int(env.dmc._step_limit)
     elif kind == "metaworld":
         env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3", render_mode=render_mode)
         env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: fixed 500-step episodes
-        # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not
-        # one of MT1's 50 fixed goals. One task is set for its settings; then the random vector (object and goal
-        # positions) is unfrozen and drawn from the env's own generator, seeded at each reset. The goal is hidden
-        # (its 3 entries are zeros), as in the reference's v2 envs, which were partially observable by default
+        # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not one
+        # of MT1's 50 fixed goals: one task for its settings, then the random vector (object and goal positions) is
+        # unfrozen and drawn from the env's generator. The goal is hidden (zeros), as in the reference's v2 envs
         env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
-        env.unwrapped._partially_observable = True
         env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
-        env.unwrapped._freeze_rand_vec = False
+        env.unwrapped._partially_observable, env.unwrapped._freeze_rand_vec = True, False
         env.unwrapped.seeded_rand_vec = True
         env, episode_len = SeededMetaWorld(env), env.spec.max_episode_steps or 500
     else:
@@ -259,33 +246,30 @@ def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]
             raise ValueError(f"--env-id {env_id!r} must have Box observation and action spaces")
         if episode_len is None:
             raise ValueError(f"--env-id {env_id!r} has no time limit (max_episode_steps), needed for the thresholds")
-    bound = np.ones(env.action_space.shape, np.float32)  # float32 bounds: no "precision lowered" warning
+    bound = np.ones(env.action_space.shape, np.float32)  # float32 bounds: no "precision lowered" warnings
     env = gym.wrappers.RescaleAction(env, -bound, bound)
-    observation_space = gym.spaces.Box(-np.inf, np.inf, env.observation_space.shape, np.float32)
-    return gym.wrappers.TransformObservation(env, float32_observation, observation_space), episode_len
+    space = gym.spaces.Box(-np.inf, np.inf, env.observation_space.shape, np.float32)
+    return gym.wrappers.TransformObservation(env, lambda obs: np.asarray(obs, np.float32), space), episode_len
 
 
-EVAL_STREAM = 1_000_000  # episode_seed's stream of the evaluation env; training env i is stream i
+EVAL_STREAM = 1_000_000  # the evaluation env's stream of episode seeds; training env i is stream i
 
 
 def episode_seed(run_seed: int, stream: int, episode: int) -> int:
-    """The reset seed of episode `episode` of env `stream` in the run seeded run_seed: a 32-bit draw of
-    SeedSequence([run_seed, stream, episode]), so runs with different seeds share no env seed (up to chance)."""
+    """The reset seed of episode `episode` of env `stream`: a 32-bit draw of SeedSequence([run_seed, stream,
+    episode]), so runs with different seeds share no episode (up to chance)."""
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
 
 
 # Networks
 def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh) -> nn.Sequential:
-    layers, dim = [], in_dim
-    for _ in range(num_layers):
-        layers += [nn.Linear(dim, hidden_dim), activation()]
-        dim = hidden_dim
-    return nn.Sequential(*layers, nn.Linear(dim, out_dim))
+    layers = [m for i in range(num_layers) for m in (nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation())]
+    return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
 
 
 def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
-    """Orthogonal weights with this gain and zero biases for every linear layer of `module` (reference code:
-    SB3's ActorCriticPolicy init, gain sqrt(2) for hidden layers, 0.01 for the policy output, 1 for the value)."""
+    """Orthogonal weights with this gain, zero biases (reference code: SB3's ActorCriticPolicy init, gain sqrt(2)
+    for hidden layers, 0.01 for the policy output, 1 for the value output)."""
     for layer in module.modules():
         if isinstance(layer, nn.Linear):
             nn.init.orthogonal_(layer.weight, gain)
@@ -294,24 +278,17 @@ def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
 
 
 def sde_std(latent: torch.Tensor, log_std: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """gSDE's action std (reference code: SB3's StateDependentNoiseDistribution): the noise latent @ W, with
-    W_ij ~ N(0, exp(log_std_ij)^2), is Gaussian with variance sum_i latent_i^2 exp(log_std_ij)^2 for action j;
-    eps (SB3's) keeps it positive. latent (batch, hidden), log_std (hidden, action) -> (batch, action)."""
+    """gSDE's action std (reference code: SB3's StateDependentNoiseDistribution): latent @ W, W_ij ~ N(0,
+    exp(log_std_ij)^2), is Gaussian with variance sum_i latent_i^2 exp(log_std_ij)^2 for action j (+ SB3's eps).
+    latent (batch, hidden), log_std (hidden, action) -> (batch, action)."""
     return torch.sqrt(latent**2 @ log_std.exp() ** 2 + eps)
 
 
-def sde_noise(latent: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
-    """gSDE's exploration noise: row n of latent (N, hidden) times matrix n of matrices (N, hidden, action)."""
-    return torch.bmm(latent.unsqueeze(1), matrices).squeeze(1)
-
-
 class Actor(nn.Module):
-    """Gaussian policy of the reference code's PPO (SB3's ActorCriticPolicy): a tanh MLP of its own (no layer
-    shared with the value function) whose last hidden features, the latent, feed a linear mean; log std
-    initialised to 0; actions are clipped to [-1, 1] in the env. With gSDE (reference code: use_sde; full_std,
-    exp not expln, no squashing, the latent detached in the noise and the std) env n explores with
-    mean + latent @ W_n, W_n a (hidden x action) matrix with entries N(0, exp(log_std)^2), so the action is
-    N(mean, sde_std(latent, log_std)); without, the std is state-independent, one log std per action."""
+    """The reference code's PPO policy (SB3's ActorCriticPolicy): a tanh MLP of its own whose last hidden features,
+    the latent, feed a linear mean; log std starts at 0; actions are clipped to [-1, 1] in the env. gSDE (reference
+    code: use_sde, full_std, no squashing, latent detached in the noise and std): env n acts mean + latent @ W_n,
+    W_n with entries N(0, exp(log_std)^2), i.e. N(mean, sde_std); without gSDE one log std per action."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers, use_sde: bool):
         super().__init__()
@@ -319,7 +296,7 @@ class Actor(nn.Module):
         orthogonal_init(self.policy[-1], 0.01)
         self.use_sde = use_sde
         self.log_std = nn.Parameter(torch.zeros((hidden_dim, action_dim) if use_sde else (action_dim,)))
-        self.exploration = None  # gSDE: the matrices W_n in use, (envs, hidden, action), drawn by reset_noise
+        self.exploration = None  # gSDE: the matrices W_n in use, (envs, hidden, action)
 
     def mean(self, obs):
         return self.policy(obs)
@@ -327,31 +304,22 @@ class Actor(nn.Module):
     def distribution(self, obs) -> tuple[torch.distributions.Normal, torch.Tensor]:
         """pi(. | s) and the latent."""
         latent = self.policy[:-1](obs)
-        mean = self.policy[-1](latent)
         if self.use_sde:
-            latent = latent.detach()
-            return torch.distributions.Normal(mean, sde_std(latent, self.log_std)), latent
+            return torch.distributions.Normal(self.policy[-1](latent), sde_std(latent.detach(), self.log_std)), latent
+        mean = self.policy[-1](latent)
         return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean)), latent
 
-    def reset_noise(self, num_envs: int):
-        """gSDE: a new exploration matrix for each env."""
-        with torch.no_grad():
-            noise = torch.randn(num_envs, *self.log_std.shape, device=self.log_std.device)
-            self.exploration = self.log_std.exp() * noise
-
-    def sample(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
-        """An action for each row of obs (with gSDE, row n uses matrix W_n) and its log-probability."""
+    def sample(self, obs, step: int, sde_freq: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Actions and log-probabilities at step `step` of a rollout. gSDE draws each env's W_n at the rollout's
+        first step and every sde_freq steps after (reference code: collect_rollouts, sde_freq 4)."""
         distribution, latent = self.distribution(obs)
-        action = distribution.loc + sde_noise(latent, self.exploration) if self.use_sde else distribution.sample()
+        if not self.use_sde:
+            action = distribution.sample()
+        else:
+            if step % sde_freq == 0:
+                self.exploration = self.log_std.exp() * torch.randn(len(obs), *self.log_std.shape, device=obs.device)
+            action = distribution.loc + torch.bmm(latent.detach().unsqueeze(1), self.exploration).squeeze(1)
         return action, distribution.log_prob(action).sum(-1)
-
-
-def explore(actor: Actor, obs: torch.Tensor, step: int, sde_freq: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The actions (and log-probabilities) at step `step` of a rollout. gSDE draws new exploration matrices at
-    the rollout's first step and every sde_freq steps after (reference code: collect_rollouts, sde_freq 4)."""
-    if actor.use_sde and step % sde_freq == 0:
-        actor.reset_noise(len(obs))
-    return actor.sample(obs)
 
 
 def make_critic(obs_dim: int, hidden_dim: int, num_layers: int) -> nn.Sequential:
@@ -373,8 +341,7 @@ class RewardEnsemble(nn.Module):
     def __init__(self, obs_dim, action_dim, size):
         super().__init__()
         self.members = nn.ModuleList(
-            nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh()) for _ in range(size)
-        )
+            nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh()) for _ in range(size))
 
     def forward(self, obs_action):
         """(..., obs+action) -> per-member rewards (members, ..., 1)."""
@@ -383,8 +350,8 @@ class RewardEnsemble(nn.Module):
 
 # Algorithm: the math a reader must trust
 def clip_range(clip_coef: float, global_step: int, total_timesteps: int) -> float:
-    """The clip range of the update after the rollout that reached global_step (reference code: linear_schedule
-    of SB3's progress_remaining = 1 - steps done / total steps): clip_coef at the start, 0 at the end."""
+    """The clip range of the update after the rollout that reached global_step (reference code: SB3's
+    linear_schedule of progress_remaining = 1 - steps done / total): clip_coef at the start, 0 at the end."""
     return clip_coef * max(0.0, 1.0 - global_step / total_timesteps)
 
 
@@ -396,29 +363,27 @@ def ppo_policy_loss(log_prob, old_log_prob, advantages, clip: float) -> tuple[to
 
 
 def ppo_value_loss(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
-    """Appendix Eq. (5): the MSE of V against the GAE returns, no value clipping (reference code: SB3's PPO,
-    which weighs it by vf_coef 0.5 in the total loss)."""
+    """Appendix Eq. (5): the MSE of V against the GAE returns, no clipping (reference code: SB3's PPO, which
+    weighs it by vf_coef 0.5 in the total loss)."""
     return F.mse_loss(values, returns)
 
 
 def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
-    """Generalised advantage estimation over a rollout of shape (T, N). next_values[t] is V of the
-    state after step t; a done step (termination or truncation) cuts the recursion. A truncated step
-    carries gamma * V(final observation) in its reward already, so time limits are bootstrapped."""
-    advantages = torch.zeros_like(rewards)
-    last = torch.zeros_like(rewards[0])
+    """Generalised advantage estimation over a rollout of shape (T, N). next_values[t] is V of the state after
+    step t; a done step (termination or truncation) cuts the recursion. A truncated step carries
+    gamma * V(final observation) in its reward already, so time limits are bootstrapped."""
+    advantages, last = torch.zeros_like(rewards), torch.zeros_like(rewards[0])
     for t in reversed(range(len(rewards))):
         not_done = 1.0 - dones[t]
-        delta = rewards[t] + gamma * next_values[t] * not_done - values[t]
-        last = delta + gamma * gae_lambda * not_done * last
+        last = rewards[t] + gamma * next_values[t] * not_done - values[t] + gamma * gae_lambda * not_done * last
         advantages[t] = last
     return advantages, advantages + values
 
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
-    """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state
-    itself (its zero distance): the (k+1)-th smallest distance. Eq. (8) without the log (README).
-    Blocks of chunk x chunk distances keep the memory bounded; the k+1 nearest are merged per block."""
+    """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state itself (its
+    zero distance): the (k+1)-th smallest. Eq. (8) without the log (README). Blocks of chunk x chunk distances
+    keep the memory bounded; the k+1 nearest are merged per block."""
     kth = []
     for i in range(0, len(states), chunk):
         nearest = torch.empty(len(states[i : i + chunk]), 0, device=states.device)
@@ -448,38 +413,19 @@ class RunningMeanStd:
 
 
 class KnnStateEntropy:
-    """Algorithm 2's intrinsic reward r_int(s_t): the distance from s_t to its k-th nearest neighbour among every
-    state of pre-training so far, this step's states of all envs included (reference code: a growing buffer on
-    the device, raw observations), divided by a running standard deviation of these distances."""
+    """Algorithm 2's r_int(s_t): the distance from s_t to its k-th nearest neighbour among every state of
+    pre-training so far, this step's included (reference code: a growing buffer of raw observations on the
+    device), divided by a running standard deviation of these distances."""
 
     def __init__(self, obs_dim: int, k: int, device: torch.device):
-        self.k, self.count = k, 0
-        self.states = torch.zeros(1024, obs_dim, device=device)  # the buffer; its first `count` rows are filled
-        self.stats = RunningMeanStd(1)
+        self.k, self.states, self.stats = k, torch.zeros(0, obs_dim, device=device), RunningMeanStd(1)
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
         """Adds this step's states (one per env) to the buffer; returns their normalised rewards."""
-        if self.count + len(states) > len(self.states):  # grow: doubling keeps the copies linear in total
-            more = self.states.new_zeros(max(len(self.states), len(states)), self.states.shape[1])
-            self.states = torch.cat([self.states, more])
-        self.states[self.count : self.count + len(states)] = states
-        self.count += len(states)
-        distance = knn_distance(states, self.states[: self.count], self.k)[:, 0]
+        self.states = torch.cat([self.states, states])
+        distance = knn_distance(states, self.states, self.k)[:, 0]
         self.stats.update(distance.cpu().numpy()[:, None])
         return distance / math.sqrt(self.stats.var[0] + 1e-8)
-
-    def state_dict(self) -> dict:
-        return {"states": self.states[: self.count].cpu(), "stats": dict(vars(self.stats))}
-
-    def load_state_dict(self, state: dict):
-        self.states, self.count = state["states"].to(self.states.device), len(state["states"])
-        vars(self.stats).update(state["stats"])
-
-
-def learned_rewards(reward_model: RewardEnsemble, raw_obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """r_hat(s, a) of the ensemble mean for every step of a rollout: (T, N, obs), (T, N, act) -> (T, N)."""
-    with torch.no_grad():
-        return reward_model(torch.cat([raw_obs, actions], dim=-1)).mean(0)[..., 0]
 
 
 def numpy_seeds(seed: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
@@ -534,16 +480,16 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
 
 
 def labels_spent(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes, rollout: int) -> int:
-    """How many labels the run asks for: the main loop holds sessions at rollout boundaries (multiples of
-    `rollout` steps), the first at or after pretrain_steps, each later one feedback_every steps or more after
-    the last, while below total_timesteps. Assumes a complete episode by the first (a later one asks fewer)."""
+    """How many labels the run asks for: sessions at rollout ends (multiples of `rollout` steps), the first at
+    or after pretrain_steps, each next one feedback_every or more steps later, while below total_timesteps.
+    Assumes a complete episode by the first session (a later first session asks fewer)."""
     step, n_sessions = -(-pretrain_steps // rollout) * rollout, 0
     while step < total_timesteps and n_sessions < len(session_sizes):
         step, n_sessions = -(-(step + feedback_every) // rollout) * rollout, n_sessions + 1
     return int(np.sum(session_sizes[:n_sessions]))
 
 
-# Plumbing: command line, checks, files, evaluation, the loop's counters
+# Plumbing: command line, files, evaluation, the loop's counters
 def parse_args() -> Args:
     """tyro's command line (--help lists every flag and choice); its error box becomes one `error: ...` line."""
     captured = io.StringIO()
@@ -569,61 +515,58 @@ def resolve(args: Args) -> Args:
             raise ValueError(f"--resume {args.resume!r}: no checkpoint.pt there (a run stopped before its first "
                              "checkpoint has to start again)")
         with open(os.path.join(args.resume, "config.json")) as f:
-            saved = json.load(f)
-        missing = [f.name for f in fields(Args) if f.name not in saved]
+            saved, names = json.load(f), [f.name for f in fields(Args)]
+        missing = [name for name in names if name not in saved]
         if missing:
             raise ValueError(f"--resume {args.resume!r}: its config.json has no {', '.join(missing)} (written by an "
                              "older prefppo.py, whose run this one cannot continue); start a new run")
-        defaults = Args()
-        for name in (f.name for f in fields(Args) if f.name not in RESUME_MAY_CHANGE):
-            if getattr(args, name) not in (getattr(defaults, name), saved[name]):
-                raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has "
-                                 f"{saved[name]!r}, got {getattr(args, name)!r}); start a new run for another "
-                                 "configuration")
-        return Args(**{**{f.name: saved[f.name] for f in fields(Args)},
-                       **{name: getattr(args, name) for name in RESUME_MAY_CHANGE}, "output_dir": args.resume})
+        for name in (name for name in names if name not in RESUME_MAY_CHANGE):
+            if getattr(args, name) not in (getattr(Args(), name), saved[name]):
+                raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has {saved[name]!r},"
+                                 f" got {getattr(args, name)!r}); start a new run for another configuration")
+        changed = {name: getattr(args, name) for name in RESUME_MAY_CHANGE}
+        return Args(**{name: saved[name] for name in names} | changed | {"output_dir": args.resume})
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     teacher = make_teacher(args.teacher)
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
-    for key, value in {**preset, **{f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}}.items():
+    for key, value in (preset | {f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}).items():
         if getattr(args, key) is None:
             setattr(args, key, value)
     return args
 
 
 def check_args(args: Args, episode_len: int) -> str | None:
-    """The first problem with the configuration as one line, or None (tyro checks the choices)."""
-    rollout = args.num_envs * args.num_steps
+    """The first problem with the configuration as one line, or None (tyro checks types and choices)."""
+    rollout, eps = args.num_envs * args.num_steps, (args.teacher_eps_mistake, args.teacher_eps_skip,
+                                                     args.teacher_eps_equal)
     checks = [
         (args.seed >= 0, f"--seed must be >= 0, got {args.seed}"),
         (args.teacher_beta >= 0, f"--teacher-beta must be >= 0 (inf = rational), got {args.teacher_beta}"),
         (0 < args.teacher_gamma <= 1, f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}"),
-        (all(0 <= getattr(args, f"teacher_eps_{name}") <= 1 for name in ("mistake", "skip", "equal")),
-         "--teacher-eps-mistake, --teacher-eps-skip and --teacher-eps-equal must be in [0, 1]"),
+        (all(0 <= e <= 1 for e in eps), "--teacher-eps-mistake, --teacher-eps-skip and --teacher-eps-equal: [0, 1]"),
         (args.max_feedback >= 1, f"--max-feedback must be >= 1, got {args.max_feedback}"),
-        (1 <= args.feedback_per_session <= args.max_feedback, f"--feedback-per-session must be in [1, "
-         f"--max-feedback={args.max_feedback}], got {args.feedback_per_session}"),
+        (1 <= args.feedback_per_session <= args.max_feedback,
+         f"--feedback-per-session must be in [1, --max-feedback={args.max_feedback}], got {args.feedback_per_session}"),
         (args.feedback_every >= 1, f"--feedback-every must be >= 1, got {args.feedback_every}"),
         (1 <= args.segment_len <= episode_len,
          f"--segment-len must be in [1, {episode_len}] (the episode length of {args.env_id}), got {args.segment_len}"),
-        (args.unsup_steps >= 0, f"--unsup-steps must be >= 0, got {args.unsup_steps}"),
         (min(args.num_envs, args.num_steps, args.update_epochs, args.unsup_update_epochs, args.sde_freq) >= 1,
          "--num-envs, --num-steps, --update-epochs, --unsup-update-epochs and --sde-freq must be >= 1"),
         (1 <= args.minibatch_size <= rollout,
          f"--minibatch-size must be in [1, --num-envs x --num-steps = {rollout}], got {args.minibatch_size}"),
-        (args.total_timesteps > args.unsup_steps and args.total_timesteps >= rollout, f"--total-timesteps "
-         f"({args.total_timesteps}) must exceed --unsup-steps ({args.unsup_steps}) and one rollout ({rollout})"),
-        (min(args.hidden_dim, args.num_layers, args.reward_batch_size, args.reward_ensemble_size) >= 1,
-         "--hidden-dim, --num-layers, --reward-batch-size and --reward-ensemble-size must be >= 1"),
-        (min(args.eval_every, args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
-         "--eval-every, --eval-episodes, --knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
+        (0 <= args.unsup_steps < args.total_timesteps and args.total_timesteps >= rollout, f"--total-timesteps "
+         f"({args.total_timesteps}) must exceed --unsup-steps ({args.unsup_steps} >= 0) and one rollout ({rollout})"),
+        (min(args.hidden_dim, args.num_layers, args.reward_batch_size, args.reward_ensemble_size, args.eval_every,
+             args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
+         "--hidden-dim, --num-layers, --reward-batch-size, --reward-ensemble-size, --eval-every, --eval-episodes, "
+         "--knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
         (args.learning_rate > 0 and args.reward_lr > 0, "--learning-rate and --reward-lr must be > 0"),
         (0 < args.gamma <= 1 and 0 <= args.gae_lambda <= 1, "--gamma must be in (0, 1] and --gae-lambda in [0, 1]"),
         (args.clip_coef > 0 and args.ent_coef >= 0 and args.vf_coef >= 0 and args.max_grad_norm > 0,
          "--clip-coef and --max-grad-norm must be > 0, --ent-coef and --vf-coef >= 0"),
         (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
-        (args.query_recent_episodes >= 0, f"--query-recent-episodes must be >= 0, got {args.query_recent_episodes}"),
-        (args.checkpoint_every >= 0, f"--checkpoint-every must be >= 0, got {args.checkpoint_every}"),
+        (min(args.query_recent_episodes, args.checkpoint_every) >= 0,
+         "--query-recent-episodes and --checkpoint-every must be >= 0"),
     ]
     return next((message for ok, message in checks if not ok), None)
 
@@ -644,37 +587,34 @@ def check_finite(name: str, value: torch.Tensor):
 
 def save_labels(path: str, **arrays):
     """One session's queries and answers (labels/session_NNNN.npz): written, then renamed into place."""
-    tmp = f"{path}.tmp.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    np.savez(f"{path}.tmp.npz", **arrays)
+    os.replace(f"{path}.tmp.npz", path)
 
 
 def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> dict:
-    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz), as
+    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz) as
     inputs0, inputs1 (obs and action per step), y and the coverage features."""
     files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
                                                       or glob.glob(os.path.join(path, "session_*.npz")))
     if not files:
         raise ValueError(f"--labels-from {path!r}: no labels found (expected session_*.npz files)")
-    sessions = []
-    for file in files:
-        with np.load(file) as data:
-            if data["obs0"].shape[1:] != (segment_len, obs_dim) or data["actions0"].shape[1:] != (segment_len,
-                                                                                                  action_dim):
-                raise ValueError(f"--labels-from {file!r}: segments of shape {data['obs0'].shape[1:]} and actions "
-                                 f"{data['actions0'].shape[1:]} do not fit this run ({segment_len}, {obs_dim}) and "
-                                 f"({segment_len}, {action_dim})")
-            sessions.append({k: data[k][data["keep"]] for k in ("obs0", "actions0", "obs1", "actions1", "y")})
-    merged = {k: np.concatenate([s[k] for s in sessions]) for k in sessions[0]}
-    return {"inputs0": np.concatenate([merged["obs0"], merged["actions0"]], -1),
-            "inputs1": np.concatenate([merged["obs1"], merged["actions1"]], -1), "y": merged["y"].astype(np.float32),
-            "features": np.concatenate([merged["obs0"].reshape(len(merged["y"]), -1),
-                                        merged["obs1"].reshape(len(merged["y"]), -1)], axis=1)}
+    sessions = [dict(np.load(file)) for file in files]
+    for file, s in zip(files, sessions):
+        if s["obs0"].shape[1:] != (segment_len, obs_dim) or s["actions0"].shape[1:] != (segment_len, action_dim):
+            raise ValueError(f"--labels-from {file!r}: segments of shape {s['obs0'].shape[1:]} and actions "
+                             f"{s['actions0'].shape[1:]} do not fit this run ({segment_len}, {obs_dim}) and "
+                             f"({segment_len}, {action_dim})")
+    kept = {k: np.concatenate([s[k][s["keep"]] for s in sessions]) for k in ("obs0", "actions0", "obs1", "actions1")}
+    kept["y"] = np.concatenate([s["y"][s["keep"]] for s in sessions])
+    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": kept["y"].astype(np.float32),
+            "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1),
+            "features": np.concatenate([kept["obs0"].reshape(len(kept["y"]), -1),
+                                        kept["obs1"].reshape(len(kept["y"]), -1)], axis=1)}
 
 
 def save_checkpoint(path: str, state: dict):
-    """Write to a temporary file, flush it to disk, then rename: a kill during the write leaves the
-    previous file intact. Serialised in memory first, so that a full disk is a plain OSError."""
+    """Write to a temporary file, flush it to disk, then rename: a kill during the write leaves the previous
+    file intact. Serialised in memory first, so that a full disk is a plain OSError."""
     tmp, serialised = f"{path}.tmp", io.BytesIO()
     torch.save(state, serialised)
     try:
@@ -693,20 +633,17 @@ def evaluate(actor, obs_stats, reward_model, env, seeds: list[int], device) -> d
     (at any step), and the Pearson correlation of learned and true per-step rewards (the paper's analysis)."""
     returns, successes, true_rewards, learned = [], [], [], []
     for seed in seeds:
-        obs, _ = env.reset(seed=seed)
-        done, episode_return, success = False, 0.0, False
+        (obs, _), done, success = env.reset(seed=seed), False, False
+        returns.append(0.0)
         while not done:
             with torch.no_grad():
                 action = actor.mean(torch.as_tensor(obs_stats.normalize(obs), device=device)).clamp(-1, 1)
                 if reward_model is not None:
                     learned.append(reward_model(torch.cat([torch.as_tensor(obs, device=device), action])).mean().item())
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
-            done = terminated or truncated
-            episode_return += reward
+            done, returns[-1], success = terminated or truncated, returns[-1] + reward, success or info.get("success")
             true_rewards.append(reward)
-            success = success or bool(info.get("success", False))
-        returns.append(episode_return)
-        successes.append(success)
+        successes.append(bool(success))
     correlation = float("nan")
     if learned and np.std(learned) > 0 and np.std(true_rewards) > 0:
         correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
@@ -714,45 +651,32 @@ def evaluate(actor, obs_stats, reward_model, env, seeds: list[int], device) -> d
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
 
 
-def projected_cpu_hours(args: Args, env: gym.Env, obs_dim: int, action_dim: int) -> float:
-    """The run's hours on this CPU from its two main costs, each timed a few times on throwaway copies (the run's
-    networks, generators and envs are untouched): env steps, and PPO updates on random minibatches."""
-    with torch.random.fork_rng():
-        actor, critic = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde), make_critic(
-            obs_dim, args.hidden_dim, args.num_layers)
-        optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()])
-        obs, actions = torch.randn(args.minibatch_size, obs_dim), torch.randn(args.minibatch_size, action_dim)
-        start = time.perf_counter()
-        for _ in range(5):
-            loss = critic(obs).square().mean() - actor.distribution(obs)[0].log_prob(actions).mean()
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-        update = (time.perf_counter() - start) / 5
-    env.reset(seed=0)
-    start = time.perf_counter()
-    for _ in range(20):
-        if any(env.step(np.zeros(action_dim, np.float32))[2:4]):
-            env.reset(seed=0)
-    step = (time.perf_counter() - start) / 20
-    return args.total_timesteps * (step + update * args.update_epochs / args.minibatch_size) / 3600
+def projected_cpu_hours(args: Args, obs_dim: int) -> float:
+    """Hours of PPO updates alone (a lower bound of the run) on this CPU: a few updates of throwaway networks of
+    the actor's size on random data, timed before the run seeds torch (its state is untouched)."""
+    net, batch, start = mlp(obs_dim, 1, args.hidden_dim, args.num_layers), torch.randn(args.minibatch_size, obs_dim), 0
+    for repeat in range(6):
+        start = time.perf_counter() if repeat == 1 else start  # the first one warms up
+        net(batch).square().mean().backward()
+    seconds = 2 * (time.perf_counter() - start) / 5  # actor and critic
+    return args.total_timesteps / args.minibatch_size * args.update_epochs * seconds / 3600
 
 
 @dataclass
 class Progress:
-    """Every counter the main loop carries. A checkpoint saves asdict(progress) and a resume restores
+    """Every counter the main loop carries: a checkpoint saves asdict(progress), a resume restores
     Progress(**saved), so a counter added here is checkpointed by construction."""
 
     global_step: int = 0
-    episodes: list[int] = field(default_factory=list)  # env i runs its episode number episodes[i] (its reset seed)
+    episodes: list[int] = field(default_factory=list)  # env i runs its episode number episodes[i]
     sessions_done: int = 0
     feedback_used: int = 0
     next_feedback_step: int = 0
     evaluations: int = 0
     next_checkpoint_step: int = 0
-    reward_ready: bool = False  # PPO trains on r_hat (or the true reward) instead of the kNN reward
+    reward_ready: bool = False  # PPO trains on r_hat (or the true reward), no longer on the kNN reward
     last_eval: float = float("nan")
-    overhead_seconds: float = 0.0  # time in the preference-learning parts: kNN reward, queries, reward learning
+    overhead_seconds: float = 0.0  # in the preference-learning parts: kNN reward, queries, reward learning
     wall_time: float = 0.0
     updates_on_knn_reward: int = 0
     updates_on_learned_reward: int = 0
@@ -764,7 +688,7 @@ if __name__ == "__main__":
     args = parse_args()
     try:  # every user error: one line, before any work
         args = resolve(args)
-        env, episode_len = make_env(args.env_id)
+        env, episode_len = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
         problem = check_args(args, episode_len)
         if not problem and args.labels_from and not args.resume:
@@ -778,16 +702,13 @@ if __name__ == "__main__":
             import moviepy  # noqa: F401
 
             with warnings.catch_warnings(action="ignore"):  # GLFW warns before it fails without a display
-                eval_env, _ = make_env(args.env_id, render_mode="rgb_array")
-                eval_env.reset(seed=0)
-                eval_env.render()
+                env.reset(seed=0)
+                env.render()
         except Exception as error:
             print(f"error: --capture-video cannot render ({type(error).__name__}: {(str(error) or '-').splitlines()[0]}"
                   "); it needs moviepy and, without a display, MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU)",
                   file=sys.stderr, flush=True)
             os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
-    else:
-        eval_env, _ = make_env(args.env_id)
     run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
     output_dir = args.output_dir or os.path.join("runs", run_name)
     if not args.resume and os.path.isdir(output_dir) and os.listdir(output_dir):
@@ -804,13 +725,11 @@ if __name__ == "__main__":
     print("configuration:\n" + "\n".join(f"  {key}: {value}" for key, value in config.items()))
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
     print(f"device: {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu'}"
-          f"{'' if device.type == 'cuda' or not args.cuda else ' (torch sees no GPU)'}", flush=True)
-    if device.type == "cpu" and args.total_timesteps >= 1_000_000:  # the paper's sizes: days on some CPUs
-        hours = projected_cpu_hours(args, env, obs_dim, action_dim)
-        if hours > 2:
-            print(f"note: on this CPU the run takes at least {hours:.0f} h (projected); the README's CPU scale is "
-                  "python prefppo.py --env-id walker-walk --total-timesteps 1000000", flush=True)
-    env.close()
+          f"{' (torch sees no GPU)' if args.cuda and device.type == 'cpu' else ''}", flush=True)
+    hours = projected_cpu_hours(args, obs_dim) if device.type == "cpu" and args.total_timesteps >= 1_000_000 else 0
+    if hours > 2:  # the paper's sizes
+        print(f"note: on this CPU the PPO updates alone take {hours:.0f} h (projected); "
+              "the README's CPU scale is python prefppo.py --env-id walker-walk --total-timesteps 1000000", flush=True)
 
     from torch.utils.tensorboard import SummaryWriter
 
@@ -825,8 +744,8 @@ if __name__ == "__main__":
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
-    # Seeding: numpy (query sampler and teacher, independent streams), torch (networks, actions), and every
-    # episode's reset: episode_seed(seed, env, episode), so an env is a function of its episode's seed and actions
+    # Seeding: numpy (query sampler and teacher, independent streams), torch (networks, actions), every reset
+    # (episode_seed): an env is a function of its episode's seed and actions, so none of its state is saved
     sampler_seed, teacher_seed = numpy_seeds(args.seed)
     rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
@@ -834,11 +753,10 @@ if __name__ == "__main__":
     # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
     torch.set_flush_denormal(True)
     torch.backends.cudnn.deterministic = args.torch_deterministic
-    envs = [make_env(args.env_id)[0] for _ in range(args.num_envs)]
-    if args.capture_video:  # the first episode of each evaluation, as videos/step_N-episode-M.mp4
-        eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(output_dir, "videos"),
+    envs, eval_env = [make_env(args.env_id)[0] for _ in range(args.num_envs)], env
+    if args.capture_video:  # the first episode of each evaluation: videos/step_N-episode-M.mp4
+        eval_env = gym.wrappers.RecordVideo(env, os.path.join(output_dir, "videos"),
                                            episode_trigger=lambda episode: episode % args.eval_episodes == 0)
-
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
     actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate, eps=1e-5)
@@ -854,52 +772,37 @@ if __name__ == "__main__":
     if spent < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
               f"steps (sessions from step {args.unsup_steps}, every {args.feedback_every} steps, at rollout ends)")
-    preference_inputs0, preference_inputs1, preference_y, labelled_features = [], [], [], []
+    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset, per session
     if args.labels_from and not args.resume:  # earlier labels: free, not counted in this run's budget
-        preference_inputs0.append(torch.as_tensor(imported_labels["inputs0"], device=device))
-        preference_inputs1.append(torch.as_tensor(imported_labels["inputs1"], device=device))
-        preference_y.append(torch.as_tensor(imported_labels["y"], device=device))
-        labelled_features.append(imported_labels["features"])
+        for key, value in imported_labels.items():
+            preferences[key].append(torch.as_tensor(value, device=device) if key != "features" else value)
         print(f"--labels-from: {len(imported_labels['y'])} labels from {args.labels_from}")
-    # The complete episodes that segments are drawn from, raw (obs, actions, true rewards): the last
+    # The complete episodes that segments come from, raw (obs, actions, true rewards): the last
     # query_recent_episodes, or all (reference code: add_data_batch never trims; 4M walker steps: 0.5 GB)
     episodes = deque(maxlen=args.query_recent_episodes or None)
-    current = [([], [], []) for _ in range(args.num_envs)]  # the running episode of each env
-    recent_returns = deque(maxlen=100)  # of training episodes, for the teacher's adaptive thresholds
+    current = [([], [], []) for _ in range(args.num_envs)]  # each env's running episode
+    recent_returns = deque(maxlen=100)  # of training episodes: the teacher's adaptive thresholds
     eval_rows = []  # eval.csv
     progress = Progress(episodes=[0] * args.num_envs, next_feedback_step=args.unsup_steps,
                         next_checkpoint_step=args.checkpoint_every)
-
-    def checkpoint_state() -> dict:
-        """Everything the run needs to go on exactly after a rollout. The envs are not saved: each is reset with
-        its episode's seed and replays `current`. gSDE's matrices are not either: each rollout draws new ones."""
-        return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
-                "actor": actor.state_dict(), "critic": critic.state_dict(), "reward_model": reward_model.state_dict(),
-                "actor_optimizer": actor_optimizer.state_dict(), "critic_optimizer": critic_optimizer.state_dict(),
-                "reward_optimizer": reward_optimizer.state_dict(), "obs_stats": vars(obs_stats),
-                "knn_reward": knn_reward.state_dict(),
-                "preferences": [preference_inputs0, preference_inputs1, preference_y, labelled_features],
-                "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
-                "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None,
-                "episodes": list(episodes), "current": current, "recent_returns": list(recent_returns),
-                "eval_rows": eval_rows}
-
+    learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
+                "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
     if checkpoint:  # --resume: every part back, key by key
         progress = Progress(**checkpoint["progress"])
-        for name, part in [("actor", actor), ("critic", critic), ("reward_model", reward_model),
-                           ("actor_optimizer", actor_optimizer), ("critic_optimizer", critic_optimizer),
-                           ("reward_optimizer", reward_optimizer), ("knn_reward", knn_reward)]:
+        for name, part in learners.items():
             part.load_state_dict(checkpoint[name])
         vars(obs_stats).update(checkpoint["obs_stats"])
-        preference_inputs0, preference_inputs1, preference_y = (
-            [t.to(device) for t in part] for part in checkpoint["preferences"][:3])
-        labelled_features, teacher, rng = checkpoint["preferences"][3], checkpoint["teacher"], checkpoint["rng"]
+        knn_reward.states = checkpoint["knn_states"].to(device)
+        vars(knn_reward.stats).update(checkpoint["knn_stats"])
+        preferences = {key: [v.to(device) if torch.is_tensor(v) else v for v in values]
+                       for key, values in checkpoint["preferences"].items()}
+        teacher, rng = checkpoint["teacher"], checkpoint["rng"]
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
         episodes.extend(checkpoint["episodes"])
-        current, eval_rows = checkpoint["current"], checkpoint["eval_rows"]
         recent_returns.extend(checkpoint["recent_returns"])
+        current, eval_rows = checkpoint["current"], checkpoint["eval_rows"]
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {output_dir!r} has already finished ({progress.global_step} steps)")
         later_sessions = sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]
@@ -915,145 +818,145 @@ if __name__ == "__main__":
         csv.DictWriter(f, eval_fields).writeheader()
         csv.DictWriter(f, eval_fields).writerows(eval_rows)
     os.replace(f"{eval_path}.tmp", eval_path)
-    # Each env at the start of its running episode (its own seed), then that episode's actions so far again:
+    # Each env at the start of its running episode (that episode's seed), then that episode's actions so far again:
     # MuJoCo is deterministic, so a resumed env is exactly where it was (a new run has no actions to replay)
-    raw_obs = np.stack([env.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0]
-                        for i, env in enumerate(envs)])
-    for i, env in enumerate(envs):
-        for action in current[i][1]:
-            raw_obs[i] = env.step(action)[0]
+    raw_obs = np.stack([e.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0] for i, e in enumerate(envs)])
+    for i, action in ((i, action) for i in range(args.num_envs) for action in current[i][1]):
+        raw_obs[i] = envs[i].step(action)[0]
 
     rollout_shape = (args.num_steps, args.num_envs)
-    raw_obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
-    obs_buf = torch.zeros(*rollout_shape, obs_dim, device=device)
+    raw_obs_buf, obs_buf = (torch.zeros(*rollout_shape, obs_dim, device=device) for _ in range(2))
     actions_buf, env_actions_buf = (torch.zeros(*rollout_shape, action_dim, device=device) for _ in range(2))
-    logprobs_buf, values_buf, next_values_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
-    true_rewards_buf, bootstrap_buf, dones_buf = (torch.zeros(rollout_shape, device=device) for _ in range(3))
-    intrinsic_buf = torch.zeros(rollout_shape, device=device)
+    logprobs_buf, values_buf, next_values_buf, intrinsic_buf, true_rewards_buf, bootstrap_buf, dones_buf = (
+        torch.zeros(rollout_shape, device=device) for _ in range(7))
     stop = []  # SIGTERM (a cluster's time limit) or SIGINT (Ctrl-C): checkpoint after this rollout, then exit
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
     signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
     start_time = last_print = time.time() - progress.wall_time
 
+    def checkpoint_state() -> dict:
+        """Everything the run needs to go on exactly after a rollout, but the envs (each is reset with its episode's
+        seed and replays `current`) and gSDE's matrices (each rollout draws new ones)."""
+        return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
+                **{name: part.state_dict() for name, part in learners.items()}, "obs_stats": vars(obs_stats),
+                "knn_states": knn_reward.states.cpu(), "knn_stats": vars(knn_reward.stats), "preferences": preferences,
+                "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
+                "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None,
+                "episodes": list(episodes), "current": current, "recent_returns": list(recent_returns),
+                "eval_rows": eval_rows}
+
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (pre-training) for the first unsup_steps
     try:
         while progress.global_step < args.total_timesteps:
-            if args.ground_truth_reward and progress.global_step >= args.unsup_steps:
-                progress.reward_ready = True
-            # Feedback session (Algorithm 3, reward learning) at a rollout boundary: the first after pre-training,
+            step = progress.global_step
+            progress.reward_ready |= args.ground_truth_reward and step >= args.unsup_steps
+            # Feedback session (Algorithm 3, reward learning) at a rollout's end: the first after pre-training,
             # then every feedback_every steps. SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat
-            if (not args.ground_truth_reward and progress.global_step >= progress.next_feedback_step
+            if (not args.ground_truth_reward and step >= progress.next_feedback_step
                     and progress.sessions_done < len(session_sizes)
                     and any(len(e[2]) >= args.segment_len for e in episodes)):
-                session_start, step = time.perf_counter(), progress.global_step
-                size = int(session_sizes[progress.sessions_done])
+                session_start, size = time.perf_counter(), int(session_sizes[progress.sessions_done])
                 usable = [e for e in episodes if len(e[2]) >= args.segment_len]
-                # the first session is always uniform (reference code)
-                sampler = args.sampler if progress.reward_ready else "uniform"
+                sampler = args.sampler if progress.reward_ready else "uniform"  # the first: uniform (reference code)
                 n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
                 e0, s0, e1, s1 = random_pairs([len(e[2]) for e in usable], args.segment_len, n_candidates, rng)
                 window = np.arange(args.segment_len)
-                obs0, act0, true0 = (np.stack([usable[e][part][s + window] for e, s in zip(e0, s0)]) for part in range(3))
-                obs1, act1, true1 = (np.stack([usable[e][part][s + window] for e, s in zip(e1, s1)]) for part in range(3))
+                obs0, act0, true0 = (np.stack([usable[e][i][s + window] for e, s in zip(e0, s0)]) for i in range(3))
+                obs1, act1, true1 = (np.stack([usable[e][i][s + window] for e, s in zip(e1, s1)]) for i in range(3))
                 inputs0 = torch.as_tensor(np.concatenate([obs0, act0], -1), device=device)
                 inputs1 = torch.as_tensor(np.concatenate([obs1, act1], -1), device=device)
-                features = None  # appendix: the states of both segments concatenated
-                if args.sampler.endswith("coverage"):
-                    features = np.concatenate([obs0.reshape(len(obs0), -1), obs1.reshape(len(obs1), -1)], axis=1)
+                # appendix: both segments' states concatenated, for the coverage samplers
+                features = np.concatenate([obs0.reshape(len(obs0), -1), obs1.reshape(len(obs1), -1)], axis=1)
                 chosen = np.arange(size)  # uniform: random_pairs drew `size` uniform pairs
                 if sampler != "uniform":
                     with torch.no_grad():
-                        logits = reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2)
-                    labelled = np.concatenate(labelled_features) if labelled_features else None
-                    chosen = select(sampler, size, probs=torch.sigmoid(logits)[..., 0].cpu().numpy(),
-                                    features=features, labeled_features=labelled, rng=rng)
+                        probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))[..., 0]
+                    labelled = np.concatenate(preferences["features"]) if preferences["features"] else None
+                    chosen = select(sampler, size, probs=probs.cpu().numpy(), features=features,
+                                    labeled_features=labelled, rng=rng)
                 obs0, obs1, act0, act1, true0, true1 = (x[chosen] for x in (obs0, obs1, act0, act1, true0, true1))
                 # Appendix, adaptive thresholds: from the mean true return of the last 100 training episodes
                 teacher.set_thresholds(float(np.mean(recent_returns)), args.segment_len, episode_len)
                 y, keep = teacher.label(true0, true1)
-                save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
-                            step=step, obs0=obs0, actions0=act0, obs1=obs1, actions1=act1, rewards0=true0,
-                            rewards1=true1, y=y, keep=keep)
+                save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"), step=step,
+                            obs0=obs0, actions0=act0, obs1=obs1, actions1=act1, rewards0=true0, rewards1=true1, y=y,
+                            keep=keep)
                 progress.feedback_used += size
                 progress.sessions_done += 1
                 progress.next_feedback_step = step + args.feedback_every
-                kept = torch.as_tensor(chosen[keep], device=device)
-                preference_inputs0.append(inputs0[kept])
-                preference_inputs1.append(inputs1[kept])
-                preference_y.append(torch.as_tensor(y[keep], dtype=torch.float32, device=device))
-                if features is not None:
-                    labelled_features.append(features[chosen][keep])
-                writer.add_scalar("feedback/labels", progress.feedback_used, step)
-                writer.add_scalar("feedback/skipped", int((~keep).sum()), step)
-                writer.add_scalar("feedback/equal", int((y[keep] == 0.5).sum()), step)
-                n_labels = sum(len(p) for p in preference_y)
+                kept = chosen[keep]
+                preferences["inputs0"].append(inputs0[kept])
+                preferences["inputs1"].append(inputs1[kept])
+                preferences["y"].append(torch.as_tensor(y[keep], dtype=torch.float32, device=device))
+                preferences["features"] += [features[kept]] if args.sampler.endswith("coverage") else []
+                for name, value in [("labels", progress.feedback_used), ("skipped", (~keep).sum()),
+                                    ("equal", (y[keep] == 0.5).sum())]:
+                    writer.add_scalar(f"feedback/{name}", int(value), step)
+                n_labels = sum(len(p) for p in preferences["y"])
                 if n_labels == 0:  # every query so far was skipped: nothing to learn from yet
                     print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
                 else:
-                    loss, accuracy = train_reward(reward_model, reward_optimizer, torch.cat(preference_inputs0),
-                                                  torch.cat(preference_inputs1), torch.cat(preference_y), args,
-                                                  args.reward_epochs)
+                    loss, accuracy = train_reward(reward_model, reward_optimizer, torch.cat(preferences["inputs0"]),
+                                                  torch.cat(preferences["inputs1"]), torch.cat(preferences["y"]),
+                                                  args, args.reward_epochs)
                     progress.reward_ready = True
                     writer.add_scalar("reward/loss", loss, step)
                     writer.add_scalar("reward/accuracy", accuracy, step)
-                    print(f"step {step}: feedback session {progress.sessions_done}: {size} queries "
-                          f"({int((~keep).sum())} skipped, {int((y[keep] == 0.5).sum())} equal), reward model "
-                          f"trained on {n_labels} labels, accuracy {accuracy:.3f}")
+                    print(f"step {step}: feedback session {progress.sessions_done}: {size} queries ({(~keep).sum()} "
+                          f"skipped, {(y[keep] == 0.5).sum()} equal), reward model trained on {n_labels} labels, "
+                          f"accuracy {accuracy:.3f}")
                 progress.overhead_seconds += time.perf_counter() - session_start
             if progress.reward_ready and progress.value_resets == 0:  # the end of pre-training: a new value head
                 reset_value_head(critic)
                 progress.value_resets += 1
 
-            # Rollout of num_steps in every environment; each env is reset by us, with its next episode's seed
-            for step in range(args.num_steps):
+            # Rollout of num_steps in every env; an env whose episode ends is reset by us with its next episode's seed
+            for t in range(args.num_steps):
                 obs_stats.update(raw_obs)
                 obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
                 if not progress.reward_ready:  # pre-training: r_int(s_t) of Algorithm 2
                     knn_start = time.perf_counter()
-                    intrinsic_buf[step] = knn_reward(torch.as_tensor(raw_obs, device=device))
+                    intrinsic_buf[t] = knn_reward(torch.as_tensor(raw_obs, device=device))
                     progress.overhead_seconds += time.perf_counter() - knn_start
                 with torch.no_grad():
-                    action, logprobs_buf[step] = explore(actor, obs, step, args.sde_freq)
-                    values_buf[step] = critic(obs)[:, 0]
+                    action, logprobs_buf[t] = actor.sample(obs, t, args.sde_freq)
+                    values_buf[t] = critic(obs)[:, 0]
                 env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
-                env_action_np = env_action.cpu().numpy()
-                final_obs, next_raw_obs = np.empty_like(raw_obs), np.empty_like(raw_obs)
-                true_reward = np.zeros(args.num_envs)
-                terminated, truncated = np.zeros(args.num_envs, bool), np.zeros(args.num_envs, bool)
+                env_action_np, next_raw_obs, final_obs = env_action.cpu().numpy(), raw_obs.copy(), raw_obs.copy()
+                true_reward, terminated, truncated = np.zeros(args.num_envs), *np.zeros((2, args.num_envs), bool)
                 for i, env in enumerate(envs):
                     final_obs[i], true_reward[i], terminated[i], truncated[i], _ = env.step(env_action_np[i])
                     if not (np.isfinite(true_reward[i]) and np.isfinite(final_obs[i]).all()):
-                        raise NonFiniteError(f"non-finite reward ({true_reward[i]}) or observation from the environment")
+                        raise NonFiniteError(f"non-finite reward ({true_reward[i]}) or observation from the "
+                                             "environment")
                     for part, value in zip(current[i], (raw_obs[i], env_action_np[i], true_reward[i])):
                         part.append(value)
                     next_raw_obs[i] = final_obs[i]
                     if terminated[i] or truncated[i]:  # final_obs[i] stays the episode's real last state
                         episodes.append(tuple(np.array(part, dtype=np.float32) for part in current[i]))
                         recent_returns.append(float(sum(current[i][2])))
-                        writer.add_scalar("charts/episodic_return", recent_returns[-1],
-                                          progress.global_step + step * args.num_envs)
-                        current[i] = ([], [], [])
-                        progress.episodes[i] += 1
+                        writer.add_scalar("charts/episodic_return", recent_returns[-1], step + t * args.num_envs)
+                        current[i], progress.episodes[i] = ([], [], []), progress.episodes[i] + 1
                         next_raw_obs[i] = env.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0]
-                raw_obs_buf[step], obs_buf[step], actions_buf[step] = torch.as_tensor(raw_obs), obs, action
-                env_actions_buf[step], true_rewards_buf[step] = env_action, torch.as_tensor(true_reward)
-                dones_buf[step] = torch.as_tensor(terminated | truncated, dtype=torch.float32)
+                raw_obs_buf[t], obs_buf[t], actions_buf[t] = torch.as_tensor(raw_obs), obs, action
+                env_actions_buf[t], true_rewards_buf[t] = env_action, torch.as_tensor(true_reward)
+                dones_buf[t] = torch.as_tensor(terminated | truncated)
                 with torch.no_grad():  # V of the state after this step; at a truncation it bootstraps the reward
-                    next_values_buf[step] = critic(torch.as_tensor(obs_stats.normalize(final_obs), device=device))[:, 0]
-                bootstrap_buf[step] = args.gamma * next_values_buf[step] * torch.as_tensor(truncated & ~terminated)
+                    next_values_buf[t] = critic(torch.as_tensor(obs_stats.normalize(final_obs), device=device))[:, 0]
+                truncated_only = torch.as_tensor(truncated & ~terminated, device=device)
+                bootstrap_buf[t] = args.gamma * next_values_buf[t] * truncated_only
                 raw_obs = next_raw_obs
             progress.global_step += rollout
 
             # The reward PPO maximises: kNN state entropy (pre-training), r_hat (Algorithm 3) or the true reward
             if not progress.reward_ready:
-                rewards = intrinsic_buf
-                progress.updates_on_knn_reward += 1
+                rewards, progress.updates_on_knn_reward = intrinsic_buf, progress.updates_on_knn_reward + 1
             elif args.ground_truth_reward:
-                rewards = true_rewards_buf.clone()
-                progress.updates_on_learned_reward += 1
+                rewards, progress.updates_on_learned_reward = true_rewards_buf, progress.updates_on_learned_reward + 1
             else:
                 inference_start = time.perf_counter()
-                rewards = learned_rewards(reward_model, raw_obs_buf, env_actions_buf)
+                with torch.no_grad():  # r_hat(s, a): the ensemble mean
+                    rewards = reward_model(torch.cat([raw_obs_buf, env_actions_buf], dim=-1)).mean(0)[..., 0]
                 progress.overhead_seconds += time.perf_counter() - inference_start
                 progress.updates_on_learned_reward += 1
             advantages, returns = compute_gae(rewards + bootstrap_buf, values_buf, next_values_buf, dones_buf,
@@ -1077,9 +980,6 @@ if __name__ == "__main__":
                                                          b_logprobs[idx], adv, clip)
                     value_loss = ppo_value_loss(critic(b_obs[idx])[:, 0], b_returns[idx])
                     loss = policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy
-                    with torch.no_grad():
-                        approx_kl = ((ratio - 1) - ratio.log()).mean()
-                        clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
                     check_finite("PPO loss", loss)  # before the step: the networks stay finite
                     actor_optimizer.zero_grad()
                     critic_optimizer.zero_grad()
@@ -1087,45 +987,43 @@ if __name__ == "__main__":
                     nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
                     actor_optimizer.step()
                     critic_optimizer.step()
+                    clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
             progress.ppo_epochs += epochs
-            explained_variance = 1 - (b_returns - b_values).var() / b_returns.var().clamp(min=1e-8)
             writer.add_scalar("charts/clip_range", clip, progress.global_step)
-            for name, value in {"policy_loss": policy_loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item(),
-                                "approx_kl": approx_kl, "clipfrac": np.mean(clip_fractions),
-                                "explained_variance": explained_variance}.items():
-                writer.add_scalar(f"losses/{name}", float(value), progress.global_step)
-            writer.add_scalar("charts/SPS", int(progress.global_step / (time.time() - start_time)), progress.global_step)
+            for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
+                                "approx_kl": ((ratio - 1) - ratio.log()).mean(), "clipfrac": np.mean(clip_fractions),
+                                "explained_variance": 1 - (b_returns - b_values).var() / b_returns.var().clamp(1e-8)
+                                }.items():
+                writer.add_scalar(f"losses/{name}", torch.as_tensor(value).item(), progress.global_step)
+            writer.add_scalar("charts/SPS", progress.global_step / (time.time() - start_time), progress.global_step)
 
-            if (progress.global_step >= (progress.evaluations + 1) * args.eval_every
-                    or progress.global_step >= args.total_timesteps):
+            if progress.global_step >= min((progress.evaluations + 1) * args.eval_every, args.total_timesteps):
                 if args.capture_video:
                     eval_env.name_prefix = f"step_{progress.global_step}"
                 seeds = [episode_seed(args.seed, EVAL_STREAM, progress.evaluations * args.eval_episodes + j)
                          for j in range(args.eval_episodes)]
-                use_reward_model = progress.reward_ready and not args.ground_truth_reward
-                result = evaluate(actor, obs_stats, reward_model if use_reward_model else None, eval_env, seeds, device)
+                judged = reward_model if progress.reward_ready and not args.ground_truth_reward else None
+                result = evaluate(actor, obs_stats, judged, eval_env, seeds, device)
                 if args.capture_video and eval_env.recording:  # write the video now, not at the next reset
                     eval_env.stop_recording()
-                progress.evaluations += 1
-                progress.last_eval = result["episode_return"]
-                row = {"step": progress.global_step, **result, "feedback": progress.feedback_used,
-                       "wall_time": round(time.time() - start_time, 1),
-                       "overhead_seconds": round(progress.overhead_seconds, 1)}
+                progress.evaluations, progress.last_eval = progress.evaluations + 1, result["episode_return"]
+                eval_rows.append({"step": progress.global_step, **result, "feedback": progress.feedback_used,
+                                  "wall_time": round(time.time() - start_time, 1),
+                                  "overhead_seconds": round(progress.overhead_seconds, 1)})
                 with open(eval_path, "a", newline="") as f:
-                    csv.DictWriter(f, eval_fields).writerow(row)
-                eval_rows.append(row)
+                    csv.DictWriter(f, eval_fields).writerow(eval_rows[-1])
                 for name in ("episode_return", "success_rate", "reward_correlation"):
                     writer.add_scalar(f"eval/{name}", result[name], progress.global_step)
             if time.time() - last_print > 10 or progress.global_step >= args.total_timesteps:
-                last_print = time.time()
+                last_print, left = time.time(), args.total_timesteps - progress.global_step
                 sps = progress.global_step / (last_print - start_time)
-                print(f"step {progress.global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA "
-                      f"{(args.total_timesteps - progress.global_step) / sps / 60:.1f} min | last eval return "
-                      f"{progress.last_eval:.1f} | labels {progress.feedback_used}/{args.max_feedback}", flush=True)
+                print(f"step {progress.global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA {left / sps / 60:.1f} "
+                      f"min | last eval return {progress.last_eval:.1f} | labels {progress.feedback_used}/"
+                      f"{args.max_feedback}", flush=True)
 
             if args.checkpoint_every and progress.global_step >= progress.next_checkpoint_step or stop:
-                if args.checkpoint_every:
-                    progress.next_checkpoint_step = (progress.global_step // args.checkpoint_every + 1) * args.checkpoint_every
+                every = args.checkpoint_every or 1
+                progress.next_checkpoint_step = (progress.global_step // every + 1) * every
                 save_start, path = time.perf_counter(), os.path.join(output_dir, "checkpoint.pt")
                 save_checkpoint(path, checkpoint_state())
                 print(f"step {progress.global_step}: checkpoint.pt saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
@@ -1135,9 +1033,8 @@ if __name__ == "__main__":
                       f"continue with --resume {output_dir}", flush=True)
                 sys.exit(128 + stop[0])
     except NonFiniteError as error:
-        # Mid-rollout or mid-update the envs have moved past the last checkpoint, which stays as it is. The state
-        # at the failure (finite: the checks come before the optimizer steps) goes to a file of its own, to
-        # inspect, not to resume from
+        # Mid-rollout or mid-update the envs have moved past the last checkpoint, which stays as it is. The state at
+        # the failure (finite: the checks come before the optimizer steps) goes to a file of its own, to inspect
         save_checkpoint(os.path.join(output_dir, "checkpoint_nonfinite.pt"), checkpoint_state())
         last = os.path.join(output_dir, "checkpoint.pt")
         fail(f"{error} at step {progress.global_step}; run stopped, "
