@@ -92,10 +92,11 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path
     assert_same_run(out, uninterrupted[script])  # --checkpoint-every changes nothing in the experiment
 
 
-@pytest.mark.parametrize("module", [pebble, prefppo])
-def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, tmp_path):
+@pytest.mark.parametrize("module, save", [(pebble, "atomic_torch_save({obj}, {path})"),
+                                          (prefppo, "save_checkpoint({path}, {obj})")])
+def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, save, tmp_path):
     path = tmp_path / "checkpoint.pt"
-    module.atomic_torch_save({"step": 1, "weights": torch.ones(10)}, str(path))
+    eval("module." + save.format(obj="{'step': 1, 'weights': torch.ones(10)}", path="str(path)"))
     # a second write killed half-way (SIGKILL from inside torch.save, after some bytes are out)
     code = (f"import os, signal, torch, {module.__name__} as m\n"
             "real_open = open\n"
@@ -105,7 +106,7 @@ def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(modu
             "    def __exit__(self, *a): pass\n"
             "    def write(self, data): self.f.write(bytes(data)[:1000]); self.f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n"
             "m.open = HalfWritten\n"
-            f"m.atomic_torch_save({{'step': 2}}, {str(path)!r})\n")
+            "m." + save.format(obj="{'step': 2}", path=repr(str(path))) + "\n")
     killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
     assert killed.returncode == -signal.SIGKILL
     assert torch.load(path, weights_only=False)["step"] == 1
@@ -204,17 +205,17 @@ def test_prefppo_diverging_loss_keeps_the_last_good_checkpoint(tmp_path):
 
 
 def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
-    # each env's 300th step returns NaN: in the rollout from step 560 (8th of 80 steps), after checkpoints at
-    # 160, 320 and 480; the envs have moved past 480, so checkpoint.pt must stay the one of step 480
+    # a NaN in an episode that its seed decides (seed 1: in the rollout from step 240, the 4th of 80 steps), after
+    # the checkpoint at 160; the envs have moved past 160, so checkpoint.pt must stay the one of step 160
     out = tmp_path / "run"
-    result = prefppo_stopped_by("tests.toy_envs:NaNReward-v0", 160, out)
-    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 560;")
-    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 480
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 560
-    # the last good checkpoint resumes, and the same environments fail at the same step again
+    result = prefppo_stopped_by("tests.toy_envs:NaNSeededEpisode-v0", 160, out)
+    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 240;")
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 160
+    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 240
+    # the last good checkpoint resumes: the envs replay their episodes and meet the NaN at the same step again
     resumed = run_script("prefppo.py", out, "--resume", str(out))
-    assert resumed.returncode == 3 and "resuming from the checkpoint at step 480" in resumed.stdout
-    assert "observation from the environment at step 560;" in resumed.stderr
+    assert resumed.returncode == 3 and "resuming from the checkpoint at step 160" in resumed.stdout
+    assert "observation from the environment at step 240;" in resumed.stderr
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
