@@ -423,7 +423,7 @@ BAD_INPUTS = [
     (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
     (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
     (["--seed", "-1"], "--seed must be >= 0, got -1"),
-    (["--query-recent-episodes", "-1"], "--query-recent-episodes must be >= 0, got -1"),
+    (["--query-recent-episodes", "-1"], "--query-recent-episodes and --checkpoint-every must be >= 0"),
 ]
 
 
