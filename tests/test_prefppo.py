@@ -1,18 +1,18 @@
-"""prefppo.py: unit tests of GAE, the autoreset handling and the reward replacement; smoke runs that
+"""prefppo.py: unit tests of GAE, the PPO losses, gSDE, the episode seeds and the reward replacement; smoke runs that
 reach every phase (pre-training updates, value reset, feedback sessions, PPO on r_hat, evaluation);
 bad input that must end with one line and a non-zero exit before any training."""
 
 import json
 import math
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 import prefppo
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
-from tests.helpers import assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels, session_lines
+from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
+                           session_lines, start_script)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
         "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"]
@@ -56,28 +56,45 @@ def test_gae_stops_at_a_done_step_and_uses_the_truncation_bootstrap_in_the_rewar
     torch.testing.assert_close(advantages[:, 0], torch.tensor([a0, a1, a2]))
 
 
-def test_autoreset_gives_the_final_observation_not_the_reset_one():
-    envs = gym.vector.SyncVectorEnv([lambda: gym.make("ConstantPenalty-v0")] * 2,
-                                    autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
-    obs, _ = envs.reset(seed=0)
-    zero = np.zeros((2, 2), dtype=np.float32)  # zero actions: the state never moves within an episode
-    for _ in range(40):
-        next_obs, _, terminated, truncated, infos = envs.step(zero)
-    done = terminated | truncated
-    assert done.all()  # 40-step episodes end together
-    real = prefppo.true_next_observations(next_obs, infos, done)
-    np.testing.assert_allclose(real, obs)  # the episode's own last state
-    assert not np.allclose(next_obs, obs)  # next_obs already starts the new episode
-    partial = prefppo.true_next_observations(next_obs, infos, np.array([True, False]))
-    np.testing.assert_allclose(partial[0], obs[0])
-    np.testing.assert_allclose(partial[1], next_obs[1])
+@pytest.mark.parametrize("env_id", ["walker-walk", "button-press", "ConstantPenalty-v0"])
+def test_an_episode_is_a_function_of_its_seed_and_actions(env_id):
+    """What --resume relies on: an env reset with the episode's seed and given the same actions goes through
+    exactly the same states, whatever the env did before (another episode, other actions)."""
+    env, _ = prefppo.make_env(env_id)
+    actions = np.random.default_rng(0).uniform(-1, 1, (30, env.action_space.shape[0])).astype(np.float32)
+    first = [env.reset(seed=123)[0]] + [env.step(a)[0] for a in actions]
+    other, _ = prefppo.make_env(env_id)  # a fresh env, first moved through another episode
+    other.reset(seed=7)
+    for a in actions[::-1]:
+        other.step(a)
+    second = [other.reset(seed=123)[0]] + [other.step(a)[0] for a in actions]
+    np.testing.assert_array_equal(np.array(first), np.array(second))
+    assert not np.array_equal(env.reset(seed=124)[0], first[0])  # another seed, another episode
+    assert env.observation_space.dtype == np.float32 and first[-1].dtype == np.float32
 
 
-def test_rollout_reward_is_the_ensemble_mean_of_the_stored_raw_observation_and_action():
+def test_runs_with_different_seeds_share_no_episode_seed():
+    seeds = {run: {prefppo.episode_seed(run, stream, episode) for stream in [*range(32), prefppo.EVAL_STREAM]
+                   for episode in range(100)} for run in (1, 2)}
+    assert len(seeds[1]) == len(seeds[2]) == 33 * 100  # all different within a run, evaluation env included
+    assert not seeds[1] & seeds[2]  # env i used to get seed + i: runs 1 and 2 shared 31 of 32 envs
+    assert prefppo.episode_seed(1, 0, 0) == prefppo.episode_seed(1, 0, 0)  # reproducible
+    assert all(0 <= s < 2**32 for s in seeds[1])  # dm_control's RandomState takes 32-bit seeds
+
+
+def test_the_env_adapter_warns_about_no_float32_cast(recwarn):
+    for env_id in ("quadruped-walk", "walker-walk", "Pendulum-v1"):
+        env, _ = prefppo.make_env(env_id)
+        env.reset(seed=0)
+    assert not [w for w in recwarn if "precision lowered" in str(w.message)]
+
+
+def test_rollout_reward_is_the_ensemble_mean_of_the_stored_raw_observation_and_action():  # a check of the shapes
     torch.manual_seed(0)
     model = prefppo.RewardEnsemble(obs_dim=3, action_dim=2, size=3)
     raw_obs, actions = torch.randn(4, 5, 3), torch.rand(4, 5, 2) * 2 - 1
-    rewards = prefppo.learned_rewards(model, raw_obs, actions)
+    with torch.no_grad():  # the rollout's reward, as the main loop computes it
+        rewards = model(torch.cat([raw_obs, actions], dim=-1)).mean(0)[..., 0]
     assert rewards.shape == (4, 5)
     t, n = 2, 3
     by_hand = torch.stack([m(torch.cat([raw_obs[t, n], actions[t, n]])) for m in model.members]).mean()
@@ -105,14 +122,14 @@ def assert_orthogonal(weight: torch.Tensor, gain: float):
 def test_networks_start_with_sb3_orthogonal_init():
     torch.manual_seed(0)
     actor, critic = prefppo.Actor(24, 6, 64, 3, use_sde=True), prefppo.make_critic(24, 64, 3)
-    actor_hidden = [m for m in actor.body if isinstance(m, torch.nn.Linear)]
+    actor_hidden = [m for m in actor.policy[:-1] if isinstance(m, torch.nn.Linear)]
     critic_linear = [m for m in critic if isinstance(m, torch.nn.Linear)]
     assert len(actor_hidden) == len(critic_linear) - 1 == 3
     for layer in actor_hidden + critic_linear[:-1]:  # hidden layers: gain sqrt(2)
         assert_orthogonal(layer.weight.detach(), math.sqrt(2))
-    assert_orthogonal(actor.action_net.weight.detach(), 0.01)  # policy output: 0.01
+    assert_orthogonal(actor.policy[-1].weight.detach(), 0.01)  # policy output: 0.01
     assert_orthogonal(critic_linear[-1].weight.detach(), 1.0)  # value output: 1
-    for layer in actor_hidden + critic_linear + [actor.action_net]:
+    for layer in actor_hidden + critic_linear + [actor.policy[-1]]:
         assert not layer.bias.any()
     assert actor.log_std.shape == (64, 6) and not actor.log_std.any()  # gSDE: one log std 0 per feature and action
     assert prefppo.Actor(24, 6, 64, 3, use_sde=False).log_std.shape == (6,)
@@ -131,13 +148,12 @@ def test_gsde_log_prob_is_the_normal_of_the_latent_std():
     with torch.no_grad():
         actor.log_std.copy_(torch.randn(16, 3) * 0.5)
     obs = torch.randn(4, 5)
-    actor.reset_noise(4)
-    action, log_prob = actor.sample(obs)
+    action, log_prob = actor.sample(obs, step=0, sde_freq=4)
     with torch.no_grad():  # the same by hand: latent, per-sample std, a diagonal Normal
-        latent = actor.body(obs)
+        latent = actor.policy[:-1](obs)
         std = torch.sqrt((latent**2).unsqueeze(-1).mul(actor.log_std.exp() ** 2).sum(1) + 1e-6)  # sum over features
-        direct = torch.distributions.Normal(actor.action_net(latent), std).log_prob(action).sum(-1)
-        entropy = torch.distributions.Normal(actor.action_net(latent), std).entropy()
+        direct = torch.distributions.Normal(actor.policy[-1](latent), std).log_prob(action).sum(-1)
+        entropy = torch.distributions.Normal(actor.policy[-1](latent), std).entropy()
     torch.testing.assert_close(log_prob, direct)
     distribution, _ = actor.distribution(obs)  # what the PPO update evaluates
     torch.testing.assert_close(distribution.log_prob(action).sum(-1), direct)
@@ -148,18 +164,16 @@ def test_gsde_action_is_the_mean_plus_the_latent_times_the_env_matrix():
     torch.manual_seed(0)
     actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
     obs = torch.randn(4, 5)
-    actor.reset_noise(4)
     with torch.no_grad():
-        action, _ = actor.sample(obs)
-        latent = actor.body(obs)
+        action, _ = actor.sample(obs, step=0, sde_freq=4)
+        latent = actor.policy[:-1](obs)
         for n in range(4):
-            torch.testing.assert_close(action[n], actor.action_net(latent[n]) + latent[n] @ actor.exploration[n])
+            torch.testing.assert_close(action[n], actor.policy[-1](latent[n]) + latent[n] @ actor.exploration[n])
     # the noise that the matrices give has the std that the log-probability uses (20000 draws, 3% tolerance)
-    actor.reset_noise(20_000)
     with torch.no_grad():
         one_state = obs[:1].expand(20_000, 5)
-        noise = actor.sample(one_state)[0] - actor.mean(one_state)
-        expected = prefppo.sde_std(actor.body(obs[:1]), actor.log_std)[0]
+        noise = actor.sample(one_state, step=0, sde_freq=4)[0] - actor.mean(one_state)
+        expected = prefppo.sde_std(actor.policy[:-1](obs[:1]), actor.log_std)[0]
     torch.testing.assert_close(noise.std(0), expected, rtol=0.03, atol=0)
 
 
@@ -168,14 +182,14 @@ def test_gsde_noise_is_kept_for_sde_freq_steps_and_differs_between_envs():
     actor = prefppo.Actor(5, 3, 16, 2, use_sde=True)
     obs = torch.randn(1, 5).expand(2, 5)  # two envs in the same state
     with torch.no_grad():
-        noise = torch.stack([prefppo.explore(actor, obs, step, sde_freq=4)[0] - actor.mean(obs) for step in range(8)])
+        noise = torch.stack([actor.sample(obs, step, sde_freq=4)[0] - actor.mean(obs) for step in range(8)])
     for step in (1, 2, 3):
         torch.testing.assert_close(noise[step], noise[0])  # steps 0-3: one matrix per env
         torch.testing.assert_close(noise[4 + step], noise[4])  # steps 4-7: the next one
     assert not torch.allclose(noise[4], noise[0], atol=1e-3)  # a new matrix at step 4
     assert not torch.allclose(noise[0, 0], noise[0, 1], atol=1e-3)  # each env its own matrix
     with torch.no_grad():  # step 0 of the next rollout draws again
-        assert not torch.allclose(prefppo.explore(actor, obs, 0, sde_freq=4)[0] - actor.mean(obs), noise[4], atol=1e-3)
+        assert not torch.allclose(actor.sample(obs, 0, sde_freq=4)[0] - actor.mean(obs), noise[4], atol=1e-3)
 
 
 def test_value_reset_redraws_only_the_output_layer_and_keeps_the_optimizer():
@@ -206,17 +220,23 @@ def test_value_reset_redraws_only_the_output_layer_and_keeps_the_optimizer():
             torch.testing.assert_close(optimizer.state[p][key], value, rtol=0, atol=0)
 
 
-def test_ppo_loss_weighs_the_value_mse_by_vf_coef_once():
-    log_prob = torch.log(torch.tensor([1.5, 0.5]))  # ratios 1.5 and 0.5 against old log-probs 0
-    advantages = torch.tensor([1.0, -1.0])
+def test_ppo_policy_loss_is_the_clipped_surrogate_of_a_hand_computed_case():
+    log_prob = torch.log(torch.tensor([1.5, 0.5, 1.1]))  # ratios 1.5, 0.5, 1.1 against old log-probs 0
+    advantages = torch.tensor([1.0, -1.0, 2.0])
+    loss, ratio = prefppo.ppo_policy_loss(log_prob, torch.zeros(3), advantages, clip=0.2)
+    torch.testing.assert_close(ratio, torch.tensor([1.5, 0.5, 1.1]))
+    # max(-A r, -A clip(r)): 0: max(-1.5, -1.2) = -1.2; 1: max(0.5, 0.8) = 0.8; 2: inside the range, -2.2
+    assert loss.item() == pytest.approx((-1.2 + 0.8 - 2.2) / 3)
+    # where the clip binds the gradient is zero: only sample 2 moves the policy
+    log_prob.requires_grad_(True)
+    prefppo.ppo_policy_loss(log_prob, torch.zeros(3), advantages, clip=0.2)[0].backward()
+    torch.testing.assert_close(log_prob.grad, torch.tensor([0.0, 0.0, -2.0 * 1.1 / 3]))
+
+
+def test_ppo_value_loss_is_the_plain_mse_weighted_once_by_vf_coef():
     values, returns = torch.tensor([1.0, 3.0]), torch.tensor([2.0, 1.0])
-    loss, policy_loss, value_loss, ratio = prefppo.ppo_loss(log_prob, torch.zeros(2), advantages, values, returns,
-                                                            torch.tensor(0.7), clip=0.2, vf_coef=0.5, ent_coef=0.1)
-    torch.testing.assert_close(ratio, torch.tensor([1.5, 0.5]))
-    # sample 0: max(-1.5, -1.2) = -1.2 (clipped at 1.2); sample 1: max(0.5, 0.8) = 0.8 (clipped at 0.8)
-    assert policy_loss.item() == pytest.approx((-1.2 + 0.8) / 2)
-    assert value_loss.item() == pytest.approx((1 + 4) / 2)  # plain MSE
-    assert loss.item() == pytest.approx(-0.2 + 0.5 * 2.5 - 0.1 * 0.7)  # 0.5 x MSE in total, not 0.25
+    assert prefppo.ppo_value_loss(values, returns).item() == pytest.approx((1 + 4) / 2)  # no 1/2, no clipping
+    assert prefppo.Args().vf_coef == 0.5  # 0.5 x MSE in the total loss (reference code: SB3), not 0.25
 
 
 def test_clip_range_decays_linearly_from_its_initial_value_to_zero():
@@ -236,21 +256,18 @@ def test_ppo_epochs_default_to_the_reference_runs():
 def test_knn_reward_scores_each_state_against_every_pretraining_state_so_far():
     knn = prefppo.KnnStateEntropy(obs_dim=1, k=1, device=torch.device("cpu"))
     first = knn(torch.tensor([[0.0], [3.0]]))  # buffer {0, 3}: each one's nearest other state is 3 away
-    assert knn.count == 2
     second = knn(torch.tensor([[1.0], [10.0]]))  # buffer {0, 3, 1, 10}: 1 is 1 from 0, 10 is 7 from 3
     # within this step alone 1 and 10 would be 9 apart; distances so far 3, 3, 1, 7: running var 19 / 4
     std = math.sqrt(19 / 4)
     np.testing.assert_allclose(second.numpy(), [1 / std, 7 / std], rtol=1e-3)
-    assert first[0] == first[1] > 0
-    # the buffer grows past its first allocation, and a checkpoint's copy goes on identically
-    many = torch.randn(700, 2, 1)
-    for states in many:
-        knn(states)
-    assert knn.count == 4 + 1400 and len(knn.states) >= 1404
-    copy = prefppo.KnnStateEntropy(obs_dim=1, k=1, device=torch.device("cpu"))
-    copy.load_state_dict(knn.state_dict())
-    step = torch.tensor([[0.5], [-0.5]])
-    torch.testing.assert_close(copy(step), knn(step), rtol=0, atol=0)
+    assert first[0] == first[1] > 0 and len(knn.states) == 4
+
+
+def test_knn_distance_skips_the_state_itself_and_merges_blocks():
+    states = torch.tensor([[0.0], [1.0], [3.0], [7.0]])
+    # k = 1: nearest other state; k = 2: second nearest (by hand: 0 -> 1, 3; 1 -> 1, 2; 3 -> 2, 3; 7 -> 4, 6)
+    torch.testing.assert_close(prefppo.knn_distance(states, states, 1)[:, 0], torch.tensor([1.0, 1.0, 2.0, 4.0]))
+    torch.testing.assert_close(prefppo.knn_distance(states, states, 2, chunk=2)[:, 0], torch.tensor([3.0, 2.0, 3.0, 6.0]))
 
 
 @pytest.mark.parametrize("env_id, epochs", [("walker-walk", 100), ("quadruped-walk", 100), ("cheetah-run", 100),
@@ -267,30 +284,21 @@ def test_the_resolved_configuration_names_every_teacher_field():
 
 
 def test_query_pool_keeps_every_episode_by_default():
-    assert prefppo.Args().query_recent_episodes == 0
-    everything, recent = prefppo.annotation_buffer(0), prefppo.annotation_buffer(100)
-    for episode in range(4000):  # walker's 4M steps
-        everything.append(episode)
-        recent.append(episode)
-    assert len(everything) == 4000 and everything[0] == 0  # pre-training's episodes included
-    assert list(recent) == list(range(3900, 4000))
-
-
-def test_runs_with_different_seeds_share_no_environment_seed():
-    run1, run2 = prefppo.run_seeds(1, 32), prefppo.run_seeds(2, 32)
-    seeds1 = set(run1["envs"]) | {run1["eval"], run1["video"]}
-    seeds2 = set(run2["envs"]) | {run2["eval"], run2["video"]}
-    assert len(seeds1) == len(seeds2) == 34  # 32 training envs, evaluation and video: all different in a run
-    assert not seeds1 & seeds2  # env i used to get seed + i: runs 1 and 2 shared 31 of 32
-    assert prefppo.run_seeds(1, 32)["envs"] == run1["envs"]  # a run's seeds are reproducible
-    assert all(0 <= s < 2**32 for s in seeds1)  # dm_control's RandomState takes 32-bit seeds
+    assert prefppo.Args().query_recent_episodes == 0  # the main loop's deque(maxlen=None): every episode
 
 
 def test_query_sampler_and_teacher_draw_independent_streams():
-    seeds = prefppo.run_seeds(1, 4)
-    teacher = prefppo.make_teacher("stoc", seed=seeds["teacher"])
+    sampler_seed, teacher_seed = prefppo.numpy_seeds(1)
+    teacher = prefppo.make_teacher("stoc", seed=teacher_seed)
     # with one seed for both (the old behaviour) these draws were the same numbers
-    assert not np.array_equal(seeds["sampler"].random(8), teacher.rng.random(8))
+    assert not np.array_equal(np.random.default_rng(sampler_seed).random(8), teacher.rng.random(8))
+
+
+def test_planned_labels_counts_the_sessions_that_fit_at_rollout_ends():
+    sizes = np.full(10, 100)
+    assert prefppo.planned_labels(4_000_000, 32_000, 32_000, sizes, 16_000) == 1000  # the DMC preset: all fit
+    # rollouts of 3000 steps: sessions at 33000 (the first rollout end >= 32000), 66000, 99000 (< 100000)
+    assert prefppo.planned_labels(100_000, 32_000, 32_000, sizes, 3000) == 300
 
 
 # ---------------------------------------------------------------- smoke runs
@@ -329,6 +337,8 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
                          "--eval-every", "2500", *TINY)
     rows = check_complete_run(out, result, n_sessions=3, obs_dim=24, segment_len=10)
     assert [int(r["step"]) for r in rows] == [3000, 5000]
+    assert "\n  gae_lambda: 0.92\n" in result.stdout  # the configuration, one key per line
+    assert "device: cpu (torch sees no GPU)" in result.stdout or "device: NVIDIA" in result.stdout  # --cuda: on
     config = json.loads((out / "config.json").read_text())
     assert config["gae_lambda"] == 0.92 and config["learning_rate"] == 5e-5  # walker-walk preset
     assert config["teacher_gamma"] == 1.0 and config["teacher_beta"] == math.inf  # the oracle, written out
@@ -398,9 +408,12 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
 
 BAD_INPUTS = [
     (["--env-id", "nowhere-walk"], "--env-id"),
-    (["--teacher", "sleepy"], "--teacher 'sleepy' is not one of oracle, stoc, mistake, skip, equal, myopic"),
-    (["--sampler", "best"], "--sampler 'best' is not one of uniform"),
-    (["--schedule", "random"], "--schedule 'random' is not one of uniform, decay, increase"),
+    (["--teacher", "sleepy"], "invalid choice 'sleepy' for argument '--teacher'. Expected one of ('oracle', 'stoc', "
+                              "'mistake', 'skip', 'equal', 'myopic')."),
+    (["--sampler", "best"], "invalid choice 'best' for argument '--sampler'. Expected one of ('uniform',"),
+    (["--schedule", "random"], "invalid choice 'random' for argument '--schedule'"),
+    (["--num-envs", "two"], "--num-envs"),
+    (["--bogus-flag", "1"], "Unrecognized options: --bogus-flag"),
     (["--max-feedback", "-5"], "--max-feedback must be >= 1"),
     (["--max-feedback", "100", "--feedback-per-session", "200"], "--feedback-per-session must be in [1, --max-feedback=100]"),
     (["--segment-len", "5000"], "--segment-len must be in [1, 1000]"),
@@ -410,7 +423,7 @@ BAD_INPUTS = [
     (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
     (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
     (["--seed", "-1"], "--seed must be >= 0, got -1"),
-    (["--query-recent-episodes", "-1"], "--query-recent-episodes must be >= 0, got -1"),
+    (["--query-recent-episodes", "-1"], "--query-recent-episodes and --checkpoint-every must be >= 0"),
 ]
 
 
@@ -419,3 +432,22 @@ def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(tmp_path, flag
     out = tmp_path / "run"
     result = run_prefppo(out, *flags, timeout=120)
     assert_rejected(result, message, out)
+
+
+def test_help_lists_the_choices(tmp_path):
+    result = run_prefppo(tmp_path / "run", "--help", timeout=120)
+    assert result.returncode == 0 and "disagreement-coverage" in result.stdout and "myopic" in result.stdout
+
+
+def test_paper_sizes_on_a_cpu_print_the_projected_time_at_start(tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("the line is for CPU runs")
+    process = start_script("prefppo.py", tmp_path / "run", "--env-id", "walker-walk")  # the paper's preset: 4M steps
+    try:
+        for line in process.stdout:
+            if line.startswith(("note: on this CPU", "step ")):
+                break
+    finally:
+        process.kill()
+        process.communicate()
+    assert line.startswith("note: on this CPU the PPO updates alone take") and "--total-timesteps 1000000" in line

@@ -92,15 +92,10 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path
     assert_same_run(out, uninterrupted[script])  # --checkpoint-every changes nothing in the experiment
 
 
-# pebble.py: save_checkpoint(path, state); prefppo.py: atomic_torch_save(obj, path)
-SAVE_CALLS = {pebble: "save_checkpoint({path!r}, {obj})", prefppo: "atomic_torch_save({obj}, {path!r})"}
-
-
 @pytest.mark.parametrize("module", [pebble, prefppo])
 def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, tmp_path):
     path = tmp_path / "checkpoint.pt"
-    save, first = SAVE_CALLS[module], {"step": 1, "weights": torch.ones(10)}
-    pebble.save_checkpoint(str(path), first) if module is pebble else module.atomic_torch_save(first, str(path))
+    module.save_checkpoint(str(path), {"step": 1, "weights": torch.ones(10)})
     # a second write killed half-way (SIGKILL from inside torch.save, after some bytes are out)
     code = (f"import os, signal, torch, {module.__name__} as m\n"
             "real_open = open\n"
@@ -110,7 +105,7 @@ def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(modu
             "    def __exit__(self, *a): pass\n"
             "    def write(self, data): self.f.write(bytes(data)[:1000]); self.f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n"
             "m.open = HalfWritten\n"
-            f"m.{save.format(path=str(path), obj={'step': 2})}\n")
+            f"m.save_checkpoint({str(path)!r}, {{'step': 2}})\n")
     killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
     assert killed.returncode == -signal.SIGKILL
     assert torch.load(path, weights_only=False)["step"] == 1
@@ -218,17 +213,17 @@ def test_prefppo_diverging_loss_keeps_the_last_good_checkpoint(tmp_path):
 
 
 def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
-    # each env's 300th step returns NaN: in the rollout from step 560 (8th of 80 steps), after checkpoints at
-    # 160, 320 and 480; the envs have moved past 480, so checkpoint.pt must stay the one of step 480
+    # a NaN in an episode that its seed decides (seed 1: in the rollout from step 240, the 4th of 80 steps), after
+    # the checkpoint at 160; the envs have moved past 160, so checkpoint.pt must stay the one of step 160
     out = tmp_path / "run"
-    result = prefppo_stopped_by("tests.toy_envs:NaNReward-v0", 160, out)
-    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 560;")
-    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 480
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 560
-    # the last good checkpoint resumes, and the same environments fail at the same step again
+    result = prefppo_stopped_by("tests.toy_envs:NaNSeededEpisode-v0", 160, out)
+    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 240;")
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 160
+    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 240
+    # the last good checkpoint resumes: the envs replay their episodes and meet the NaN at the same step again
     resumed = run_script("prefppo.py", out, "--resume", str(out))
-    assert resumed.returncode == 3 and "resuming from the checkpoint at step 480" in resumed.stdout
-    assert "observation from the environment at step 560;" in resumed.stderr
+    assert resumed.returncode == 3 and "resuming from the checkpoint at step 160" in resumed.stdout
+    assert "observation from the environment at step 240;" in resumed.stderr
 
 
 @pytest.mark.parametrize("script", SCRIPTS)

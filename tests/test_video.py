@@ -63,8 +63,12 @@ def test_prefppo_records_a_video_of_an_episode_that_terminates(tmp_path):
     result = run_script("prefppo.py", out, *PREFPPO_TINY, "--capture-video", env={"MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     assert [row["step"] for row in eval_rows(out)] == ["1000"]
-    assert [p.name for p in (out / "videos").iterdir()] == ["step_1000.mp4"]
-    assert 1 <= video_frames(out / "videos" / "step_1000.mp4") <= 1000  # the pole falls early: the file is still written
+    assert [p.name for p in (out / "videos").iterdir()] == ["step_1000-episode-0.mp4"]  # RecordVideo's name
+    # the pole falls early: the file is still written, at the evaluation's end
+    assert 1 <= video_frames(out / "videos" / "step_1000-episode-0.mp4") <= 1001
+    without = tmp_path / "plain"
+    assert run_script("prefppo.py", without, *PREFPPO_TINY).returncode == 0
+    assert eval_curve(out) == eval_curve(without)  # rendering does not move the simulation
 
 
 @needs_egl
@@ -78,13 +82,13 @@ def test_make_env_renders_rgb_frames(env_id):
     assert probe.stdout.strip() == f"({height}, {width}, 3) uint8 1", probe.stderr[-2000:]
 
 
-@pytest.mark.parametrize("script, resume", [(pebble, "resolve"), (prefppo, "resumed_args")])
-def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script, resume):
-    """Rendering does not change the experiment, so videos may be switched on for the rest of a run."""
+@pytest.mark.parametrize("script", [pebble, prefppo])
+def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script):
+    """Rendering the evaluation's first episode does not change the experiment: videos may be switched on."""
     saved = script.resolve(script.Args(output_dir=str(tmp_path)))
     (tmp_path / "config.json").write_text(json.dumps(asdict(saved)))
     (tmp_path / "checkpoint.pt").touch()
-    resumed = getattr(script, resume)(script.Args(resume=str(tmp_path), capture_video=True))
+    resumed = script.resolve(script.Args(resume=str(tmp_path), capture_video=True))
     assert resumed.capture_video and asdict(resumed) == asdict(saved) | {"capture_video": True, "resume": str(tmp_path)}
     with pytest.raises(ValueError, match="--seed cannot change"):
-        getattr(script, resume)(script.Args(resume=str(tmp_path), seed=saved.seed + 1))
+        script.resolve(script.Args(resume=str(tmp_path), seed=saved.seed + 1))

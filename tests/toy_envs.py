@@ -45,3 +45,20 @@ class NaNRewardEnv(ConstantPenaltyEnv):
 
 gym.register("HugeReward-v0", entry_point=HugeRewardEnv, max_episode_steps=40)
 gym.register("NaNReward-v0", entry_point=NaNRewardEnv, max_episode_steps=40)
+
+
+class NaNSeededEpisodeEnv(ConstantPenaltyEnv):
+    """Returns a NaN reward at the 20th step of an episode whose reset drew a third coordinate above 1: a simulator
+    that breaks in some episodes, which the episode's seed decides (so a resumed run meets it at the same step)."""
+
+    def reset(self, *, seed=None, options=None):
+        self.t = 0
+        return super().reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.t += 1
+        broken = self.t == 20 and self.state[2] > 1.0
+        return super().step(action)[0], float("nan") if broken else -1.0, False, False, {}
+
+
+gym.register("NaNSeededEpisode-v0", entry_point=NaNSeededEpisodeEnv, max_episode_steps=40)
