@@ -333,17 +333,12 @@ def build(cls, obs_dim: int, action_dim: int, config: dict, **named):
 
 
 def load_final_model(run: Run) -> tuple:
-    """(the run's script as a module, a fresh evaluation environment made as the script makes it,
-    the final actor, the reward ensemble, the observation normaliser or None): final_model.pt in networks of the
-    sizes in config.json."""
+    """(the run's script as a module, an evaluation environment made as the script makes it, the final actor, the
+    reward ensemble, the observation normaliser or None): final_model.pt in networks of the sizes in config.json."""
     import torch
 
     module, config = importlib.import_module(run.algorithm), run.config
-    seed = config["seed"] + 10_000  # the scripts' evaluation seed; a script that derives its seeds says so:
-    if hasattr(module, "run_seeds"):
-        seed = module.run_seeds(config["seed"], config["num_envs"])["eval"]
-    with warnings.catch_warnings(action="ignore"):  # Gymnasium's notes on float64 bounds, as in the scripts' runs
-        env, _ = module.make_env(config["env_id"], seed)
+    env, _ = module.make_env(config["env_id"])
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     saved = torch.load(run.path / "final_model.pt", map_location="cpu", weights_only=False)
     actor = build(module.Actor, obs_dim, action_dim, config)
@@ -357,25 +352,36 @@ def load_final_model(run: Run) -> tuple:
     return module, env, actor, reward_model, obs_stats
 
 
+def final_evaluation_seeds(module, run: Run) -> list[int]:
+    """The reset seeds of the run's last evaluation: the scripts number evaluation episodes over the whole run."""
+    first = (len(read_eval(run.path)) - 1) * run.config["eval_episodes"]
+    return [module.episode_seed(run.config["seed"], module.EVAL_STREAM, first + j)
+            for j in range(run.config["eval_episodes"])]
+
+
 def reward_alignment(run: Run) -> tuple[np.ndarray, np.ndarray]:
-    """True and learned rewards (the ensemble mean) at each step of the first mean-action episode of the run's final
-    policy in a fresh evaluation environment: the policy and reward inputs of the scripts' evaluate()."""
+    """True and learned rewards (the ensemble mean) at each step of the first episode of the run's last evaluation,
+    replayed with the script's own evaluate() on the final networks (its actions and reward inputs)."""
+    import gymnasium as gym
     import torch
 
-    _, env, actor, reward_model, obs_stats = load_final_model(run)
+    module, env, actor, reward_model, obs_stats = load_final_model(run)
     true_rewards, learned_rewards = [], []
-    obs, _ = env.reset()
-    done = False
+
+    class RecordTrueReward(gym.Wrapper):
+        def step(self, action):
+            result = self.env.step(action)
+            true_rewards.append(float(result[1]))
+            return result
+
+    def recorded_reward_model(obs_action):
+        rewards = reward_model(obs_action)
+        learned_rewards.append(rewards.mean().item())
+        return rewards
+
+    networks = (actor, recorded_reward_model) if obs_stats is None else (actor, obs_stats, recorded_reward_model)
     with torch.no_grad():
-        while not done:
-            if obs_stats is None:
-                action = actor.act(torch.as_tensor(obs)[None])[0]
-            else:
-                action = actor.mean(torch.as_tensor(obs_stats.normalize(obs))).clamp(-1, 1)
-            learned_rewards.append(reward_model(torch.cat([torch.as_tensor(obs), action])).mean().item())
-            obs, reward, terminated, truncated, _ = env.step(action.numpy())
-            true_rewards.append(float(reward))
-            done = terminated or truncated
+        module.evaluate(*networks, RecordTrueReward(env), final_evaluation_seeds(module, run)[:1], "cpu")
     env.close()
     return np.array(true_rewards), np.array(learned_rewards)
 

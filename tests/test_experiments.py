@@ -231,20 +231,22 @@ def test_report_on_the_tiny_grid_writes_markdown_csv_and_pngs(local_grid, tmp_pa
 @pytest.mark.parametrize("name", [TEACHER_RUNS[0], TEACHER_RUNS[4]], ids=["pebble", "prefppo"])
 def test_reward_alignment_rebuilds_the_final_model_as_the_run_evaluated_it(local_grid, name):
     """The report rebuilds env, policy and reward model from config.json and final_model.pt. Replayed with the
-    script's own evaluate(), the rebuilt run's evaluation episodes (one per row of eval.csv) end in the run's own
-    final evaluation; the report's alignment episode is the first of them, seen through the same policy."""
+    script's own evaluate() and the last evaluation's seeds, they give the run's own final evaluation row; the
+    report's alignment episode is that evaluation's first episode."""
     torch.set_num_threads(1)  # as the run had
     run = next(r for r in report.find_runs(local_grid[0], local_grid[0] / "report") if r.path.name == name)
     module, env, actor, reward_model, obs_stats = report.load_final_model(run)
     networks = (actor, reward_model) if module is pebble else (actor, obs_stats, reward_model)
-    replayed = [module.evaluate(*networks, env, 1, "cpu") for _ in grid.read_eval(run.path)]
+    seeds = report.final_evaluation_seeds(module, run)
+    replayed = module.evaluate(*networks, env, seeds, "cpu")
     final = grid.read_eval(run.path)[-1]
-    assert replayed[-1]["episode_return"] == pytest.approx(final["episode_return"], rel=1e-6)
-    assert replayed[-1]["reward_correlation"] == pytest.approx(final["reward_correlation"], rel=1e-5)
+    assert replayed["episode_return"] == pytest.approx(final["episode_return"], rel=1e-6)
+    assert replayed["reward_correlation"] == pytest.approx(final["reward_correlation"], rel=1e-5)
+    first = module.evaluate(*networks, env, seeds[:1], "cpu")
     true_rewards, learned_rewards = report.reward_alignment(run)
-    assert true_rewards.sum() == pytest.approx(replayed[0]["episode_return"], rel=1e-9)
+    assert true_rewards.sum() == pytest.approx(first["episode_return"], rel=1e-9)
     correlation = np.corrcoef(true_rewards, learned_rewards)[0, 1]
-    assert correlation == pytest.approx(replayed[0]["reward_correlation"], rel=1e-6)
+    assert correlation == pytest.approx(first["reward_correlation"], rel=1e-6)
 
 
 # ---------------------------------------------------------------- the report on a synthetic folder
