@@ -651,15 +651,20 @@ def evaluate(actor, obs_stats, reward_model, env, seeds: list[int], device) -> d
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
 
 
-def projected_cpu_hours(args: Args, obs_dim: int) -> float:
-    """Hours of PPO updates alone (a lower bound of the run) on this CPU: a few updates of throwaway networks of
-    the actor's size on random data, timed before the run seeds torch (its state is untouched)."""
-    net, batch, start = mlp(obs_dim, 1, args.hidden_dim, args.num_layers), torch.randn(args.minibatch_size, obs_dim), 0
-    for repeat in range(6):
-        start = time.perf_counter() if repeat == 1 else start  # the first one warms up
+def projected_cpu_hours(args: Args, env: gym.Env, obs_dim: int) -> float:
+    """Hours of the run on this CPU, from a few timed environment steps and PPO minibatch updates of throwaway
+    networks of the actor's size on random data, timed before the run seeds torch (its state is untouched)."""
+    net, batch = mlp(obs_dim, 1, args.hidden_dim, args.num_layers), torch.randn(args.minibatch_size, obs_dim)
+    env.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(20):
+        env.step(env.action_space.sample())
+    step_seconds, start = (time.perf_counter() - start) / 20, time.perf_counter()
+    for _ in range(5):
         net(batch).square().mean().backward()
-    seconds = 2 * (time.perf_counter() - start) / 5  # actor and critic
-    return args.total_timesteps / args.minibatch_size * args.update_epochs * seconds / 3600
+    update_seconds = 2 * (time.perf_counter() - start) / 5  # actor and critic
+    updates = args.total_timesteps / args.minibatch_size * args.update_epochs
+    return (args.total_timesteps * step_seconds + updates * update_seconds) / 3600
 
 
 @dataclass
@@ -726,9 +731,8 @@ if __name__ == "__main__":
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
     print(f"device: {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu'}"
           f"{' (torch sees no GPU)' if args.cuda and device.type == 'cpu' else ''}", flush=True)
-    hours = projected_cpu_hours(args, obs_dim) if device.type == "cpu" and args.total_timesteps >= 1_000_000 else 0
-    if hours > 2:  # the paper's sizes
-        print(f"note: on this CPU the PPO updates alone take {hours:.0f} h (projected); "
+    if device.type == "cpu" and args.total_timesteps > 1_000_000:  # beyond the README's CPU scale
+        print(f"note: this run needs about {projected_cpu_hours(args, env, obs_dim):.0f} h on this CPU (projected); "
               "the README's CPU scale is python prefppo.py --env-id walker-walk --total-timesteps 1000000", flush=True)
 
     from torch.utils.tensorboard import SummaryWriter
