@@ -1,4 +1,4 @@
-# PEBBLE (Lee, Smith, Abbeel 2021) as benchmarked by B-Pref (Lee et al. 2021); docs and choices: README.md
+# PEBBLE (Lee, Smith, Abbeel 2021) as benchmarked by B-Pref (Lee et al. 2021); docs/pebble.md
 import contextlib
 import csv
 import glob
@@ -132,7 +132,7 @@ class Args:
     """SAC updates on relabelled data right after the critic reset of the first reward update"""
 
 
-# Paper appendix, Table of PEBBLE hyperparameters (see README for the sources of the others). Meta-World: feedback
+# Paper appendix, Table of PEBBLE hyperparameters (sources of the others: docs/differences.md). Meta-World: feedback
 # every 4950 steps, not the paper's 5000, so that all 200 sessions (10,000 labels) fit in 1M steps (planned_labels)
 DMC_PRESET = dict(total_timesteps=500_000, max_feedback=1000, feedback_per_session=100, feedback_every=20_000,
                   segment_len=50, hidden_dim=1024, num_layers=2, batch_size=1024, learning_rate=5e-4, reward_epochs=50)
@@ -413,7 +413,7 @@ class ReplayBuffer:
 
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
-    """Eq. (8) without the log (README): distance to the k-th nearest neighbour in `reference`, not counting the
+    """Eq. (8) without the log (docs): distance to the k-th nearest neighbour in `reference`, not counting the
     state itself (the (k+1)-th smallest); chunk x chunk blocks bound the memory, the k+1 nearest merged per block."""
     kth = []
     for i in range(0, len(states), chunk):
@@ -925,7 +925,6 @@ if __name__ == "__main__":
                     else:  # every query so far was skipped: nothing to learn from yet
                         print(f"step {global_step}: all {size} queries skipped, the reward model stays as it is")
                 reset_critic = n_labels > 0 and not progress.reward_ready
-                progress.reward_ready = progress.reward_ready or n_labels > 0
                 progress.next_feedback_step = global_step + args.feedback_every
             if reset_critic:  # PEBBLE, after the first reward update: fresh critics (not actor or temperature), then
                 # critic_reset_updates SAC updates on the relabelled buffer (reference code); not counted as overhead
@@ -992,6 +991,8 @@ if __name__ == "__main__":
                     eval_env.name_prefix = f"step_{global_step}"
                 learned = reward_model if progress.reward_ready and not args.ground_truth_reward else None
                 result = evaluate(actor, learned, eval_env, seeds, device)
+                if args.capture_video and eval_env.recording:  # write the video now, not at the next reset
+                    eval_env.stop_recording()
                 progress.last_eval = result["episode_return"]
                 row = {"step": global_step, **result, "feedback": progress.feedback_used,
                        "wall_time": round(time.time() - start_time, 1),
@@ -1016,11 +1017,17 @@ if __name__ == "__main__":
             if stop:
                 print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                       f"continue with --resume {output_dir}", flush=True)
+                writer.close()
                 sys.exit(128 + stop[0])
     except FloatingPointError as error:  # a NaN or infinity in a loss or from the environment
-        save_checkpoint(checkpoint_path, checkpoint_state())  # checked before the optimizer step: still finite
-        fail(f"{error} at step {progress.global_step}; run stopped, its last finite state is in {checkpoint_path} "
-             f"and its labels in {output_dir}/labels", code=3)
+        # Mid-step the env and the buffer have moved past the last checkpoint, which stays as it is. The state at the
+        # failure (finite: the checks come before the optimizer steps) goes to a file of its own, to inspect
+        save_checkpoint(os.path.join(output_dir, "checkpoint_nonfinite.pt"), checkpoint_state())
+        last = f"its last checkpoint is intact in {checkpoint_path}" if os.path.exists(checkpoint_path) else \
+            "no checkpoint was due yet"
+        fail(f"{error} at step {progress.global_step}; run stopped, {last}, "
+             f"the state at the failure is in {output_dir}/checkpoint_nonfinite.pt and the labels in "
+             f"{output_dir}/labels", code=3)
     except OSError as error:
         fail(f"writing to {output_dir!r} failed at step {progress.global_step} ({error.strerror or error}); "
              "the last checkpoint there is intact", code=1)

@@ -1,4 +1,4 @@
-# PrefPPO (Christiano et al. 2017 with PPO) as benchmarked by B-Pref (Lee et al. 2021); docs and choices: README.md
+# PrefPPO (Christiano et al. 2017, with PPO) as benchmarked by B-Pref (Lee et al. 2021); docs/prefppo.md
 import contextlib
 import csv
 import glob
@@ -141,7 +141,7 @@ class Args:
     """segments come from the last N complete episodes (0 = all so far, pre-training's too: reference code)"""
 
 
-# Paper appendix, table of PrefPPO hyperparameters (README lists the values the paper leaves open).
+# Paper appendix, table of PrefPPO hyperparameters (docs/prefppo.md lists the values the paper leaves open).
 DMC_PRESET = dict(total_timesteps=4_000_000, max_feedback=1000, feedback_per_session=100, feedback_every=32_000,
                   segment_len=50, learning_rate=5e-5, num_envs=32, num_steps=500, minibatch_size=64, gae_lambda=0.92,
                   reward_epochs=100)  # reference code: re_update 100 (train_PrefPPO.py default, DMC scripts)
@@ -229,7 +229,8 @@ def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]
         env = DMCEnv(*env_id.split("-", 1), render_mode)
         episode_len = int(env.dmc._step_limit)
     elif kind == "metaworld":
-        env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3", render_mode=render_mode)
+        env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3", render_mode=render_mode,
+                       disable_env_checker=True)  # its checker warns about the hidden goal's zero bounds
         env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: fixed 500-step episodes
         # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not one
         # of MT1's 50 fixed goals: one task for its settings, then the random vector (object and goal positions) is
@@ -382,7 +383,7 @@ def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
     """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state itself (its
-    zero distance): the (k+1)-th smallest. Eq. (8) without the log (README). Blocks of chunk x chunk distances
+    zero distance): the (k+1)-th smallest. Eq. (8) without the log (docs). Blocks of chunk x chunk distances
     keep the memory bounded; the k+1 nearest are merged per block."""
     kth = []
     for i in range(0, len(states), chunk):
@@ -495,12 +496,14 @@ def parse_args() -> Args:
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
-            return tyro.cli(Args)
+            args = tyro.cli(Args)
     except SystemExit as exit_:
         if not exit_.code:
             raise
         lines = [line.strip("│ ") for line in captured.getvalue().splitlines()[1:]]  # the box's text, no frame
         fail(" ".join(itertools.takewhile(lambda line: not line.startswith("─"), lines)) or captured.getvalue())
+    sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
+    return args
 
 
 RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name", "capture_video")
@@ -731,9 +734,10 @@ if __name__ == "__main__":
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
     print(f"device: {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu'}"
           f"{' (torch sees no GPU)' if args.cuda and device.type == 'cpu' else ''}", flush=True)
-    if device.type == "cpu" and args.total_timesteps > 1_000_000:  # beyond the README's CPU scale
+    if device.type == "cpu" and args.total_timesteps > 1_000_000:  # beyond the CPU scale of docs/results.md
         print(f"note: this run needs about {projected_cpu_hours(args, env, obs_dim):.0f} h on this CPU (projected); "
-              "the README's CPU scale is python prefppo.py --env-id walker-walk --total-timesteps 1000000", flush=True)
+              "the CPU scale of docs/results.md is python prefppo.py --env-id walker-walk --total-timesteps 1000000",
+              flush=True)
 
     from torch.utils.tensorboard import SummaryWriter
 
@@ -928,8 +932,8 @@ if __name__ == "__main__":
                 env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses the sampled `action`
                 env_action_np, next_raw_obs, final_obs = env_action.cpu().numpy(), raw_obs.copy(), raw_obs.copy()
                 true_reward, terminated, truncated = np.zeros(args.num_envs), *np.zeros((2, args.num_envs), bool)
-                for i, env in enumerate(envs):
-                    final_obs[i], true_reward[i], terminated[i], truncated[i], _ = env.step(env_action_np[i])
+                for i, train_env in enumerate(envs):
+                    final_obs[i], true_reward[i], terminated[i], truncated[i], _ = train_env.step(env_action_np[i])
                     if not (np.isfinite(true_reward[i]) and np.isfinite(final_obs[i]).all()):
                         raise NonFiniteError(f"non-finite reward ({true_reward[i]}) or observation from the "
                                              "environment")
@@ -941,7 +945,7 @@ if __name__ == "__main__":
                         recent_returns.append(float(sum(current[i][2])))
                         writer.add_scalar("charts/episodic_return", recent_returns[-1], step + t * args.num_envs)
                         current[i], progress.episodes[i] = ([], [], []), progress.episodes[i] + 1
-                        next_raw_obs[i] = env.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0]
+                        next_raw_obs[i] = train_env.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0]
                 raw_obs_buf[t], obs_buf[t], actions_buf[t] = torch.as_tensor(raw_obs), obs, action
                 env_actions_buf[t], true_rewards_buf[t] = env_action, torch.as_tensor(true_reward)
                 dones_buf[t] = torch.as_tensor(terminated | truncated)
@@ -1035,6 +1039,7 @@ if __name__ == "__main__":
             if stop:
                 print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {progress.global_step}; "
                       f"continue with --resume {output_dir}", flush=True)
+                writer.close()
                 sys.exit(128 + stop[0])
     except NonFiniteError as error:
         # Mid-rollout or mid-update the envs have moved past the last checkpoint, which stays as it is. The state at

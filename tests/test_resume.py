@@ -176,8 +176,9 @@ def test_a_diverging_loss_stops_the_run_with_a_finite_checkpoint(script, flags, 
     assert result.returncode == 3 and "Traceback" not in result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: non-finite {quantity} (inf) at step "), result.stderr
-    saved = torch.load(out / "checkpoint.pt", weights_only=False)
-    for name in ("actor", "critic"):
+    assert "the state at the failure is in" in lines[0]
+    saved = torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)
+    for name in ("actor", "critic"):  # checked before the optimizer step: the networks are still finite
         assert all(torch.isfinite(t).all() for t in saved[name].values())
 
 
@@ -186,7 +187,7 @@ def test_a_nan_from_the_environment_stops_the_run(script, flags, tmp_path):
     result = run_script(script, tmp_path / "run", "--env-id", "tests.toy_envs:NaNReward-v0", *flags)
     assert result.returncode == 3 and "Traceback" not in result.stderr
     assert "error: non-finite reward (nan) or observation from the environment at step" in result.stderr
-    assert (tmp_path / "run" / "checkpoint.pt").exists()
+    assert (tmp_path / "run" / "checkpoint_nonfinite.pt").exists()
 
 
 def prefppo_stopped_by(env_id: str, checkpoint_every: int, out) -> subprocess.CompletedProcess:
