@@ -97,13 +97,13 @@ class Args:
     alpha_lr: float = 1e-4
     """learning rate of the SAC temperature (reference code: 1e-4 on every task)"""
     eval_every: int = 10000
-    """environment steps between evaluations"""
+    """environment steps between evaluations (reference code: 10000)"""
     eval_episodes: int = 10
-    """episodes per evaluation"""
+    """episodes per evaluation (reference code: 10)"""
     ground_truth_reward: bool = False
     """if toggled, train SAC on the true reward with no teacher (the normalisation denominator)"""
     buffer_size: int | None = None
-    """replay buffer capacity (default: total_timesteps)"""
+    """replay buffer capacity (default: total_timesteps, as the reference code)"""
     gamma: float = 0.99
     """discount of SAC"""
     tau: float = 0.005
@@ -127,7 +127,7 @@ class Args:
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
     query_recent_episodes: int = 100
-    """segments are drawn from the last N complete episodes (0 = all in the buffer)"""
+    """segments are drawn from the last N complete episodes (reference code: 100; 0 = all in the buffer)"""
     critic_reset_updates: int = 100
     """SAC updates on relabelled data right after the critic reset of the first reward update"""
 
@@ -895,7 +895,7 @@ if __name__ == "__main__":
                     parts = (("obs", buffer.obs), ("actions", buffer.actions), ("rewards", buffer.true_rewards[:, 0]))
                     segments = {f"{key}{i}": part[idx].cpu().numpy() for i, idx in enumerate((idx0, idx1))
                                 for key, part in parts}
-                    # Appendix, adaptive thresholds: from the mean true return of the last 10 training episodes
+                    # Appendix, adaptive thresholds: mean true return of the last 10 training episodes (reference code)
                     teacher.set_thresholds(float(np.mean(progress.recent_returns[-10:])), args.segment_len, episode_len)
                     y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
                     save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),

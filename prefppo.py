@@ -883,7 +883,7 @@ if __name__ == "__main__":
                     chosen = select(sampler, size, probs=probs.cpu().numpy(), features=features,
                                     labeled_features=labelled, rng=rng)
                 obs0, obs1, act0, act1, true0, true1 = (x[chosen] for x in (obs0, obs1, act0, act1, true0, true1))
-                # Appendix, adaptive thresholds: from the mean true return of the last 100 training episodes
+                # Appendix, adaptive thresholds: mean true return of the last 100 training episodes (reference code)
                 teacher.set_thresholds(float(np.mean(recent_returns)), args.segment_len, episode_len)
                 y, keep = teacher.label(true0, true1)
                 save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"), step=step,
