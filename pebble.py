@@ -661,17 +661,16 @@ def evaluate(actor, reward_model, env, seeds: list[int], device) -> dict:
 
 
 def seconds_per_update(args: Args, obs_dim: int, action_dim: int, repeats: int = 3) -> float:
-    """One SAC update's time at the run's sizes, on throwaway networks and data (torch's random state forked)."""
-    with torch.random.fork_rng(devices=[]):
-        nets = [cls(obs_dim, action_dim, args.hidden_dim, args.num_layers) for cls in (Actor, TwinCritic, TwinCritic)]
-        log_alpha = torch.zeros((), requires_grad=True)
-        optimizers = [torch.optim.Adam(p) for p in (nets[0].parameters(), nets[1].parameters(), [log_alpha])]
-        batch = Batch(*(torch.rand(args.batch_size, dim) for dim in (obs_dim, action_dim, 1, obs_dim, 1)))
-        times = []
-        for _ in range(repeats + 1):  # the first one warms up
-            times.append(time.perf_counter())
-            sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)
-        return (time.perf_counter() - times[1]) / repeats
+    """One SAC update's time at the run's sizes, on throwaway networks and data, timed before the run seeds torch."""
+    nets = [cls(obs_dim, action_dim, args.hidden_dim, args.num_layers) for cls in (Actor, TwinCritic, TwinCritic)]
+    log_alpha = torch.zeros((), requires_grad=True)
+    optimizers = [torch.optim.Adam(p) for p in (nets[0].parameters(), nets[1].parameters(), [log_alpha])]
+    batch = Batch(*(torch.rand(args.batch_size, dim) for dim in (obs_dim, action_dim, 1, obs_dim, 1)))
+    sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)  # warm-up
+    start = time.perf_counter()
+    for _ in range(repeats):
+        sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)
+    return (time.perf_counter() - start) / repeats
 
 
 @dataclass
@@ -685,7 +684,7 @@ class Progress:
     episode_steps: int = 0
     episode_return: float = 0.0
     completed_episodes: list = field(default_factory=list)  # (first transition number, length) of each
-    recent_returns: list = field(default_factory=list)  # true returns of the last 100 complete episodes
+    recent_returns: list = field(default_factory=list)  # true returns of the last 10 complete episodes
     reward_ready: bool = False  # SAC trains on buffer.rewards: r_hat (or the true reward, --ground-truth-reward)
     sessions_done: int = 0
     feedback_used: int = 0
@@ -896,7 +895,7 @@ if __name__ == "__main__":
                     segments = {f"{key}{i}": part[idx].cpu().numpy() for i, idx in enumerate((idx0, idx1))
                                 for key, part in parts}
                     # Appendix, adaptive thresholds: mean true return of the last 10 training episodes (reference code)
-                    teacher.set_thresholds(float(np.mean(progress.recent_returns[-10:])), args.segment_len, episode_len)
+                    teacher.set_thresholds(float(np.mean(progress.recent_returns)), args.segment_len, episode_len)
                     y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
                     save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
                                 step=global_step, y=y, keep=keep, **segments)
@@ -956,7 +955,7 @@ if __name__ == "__main__":
             progress.episode_return += float(true_reward)
             if terminated or truncated:
                 progress.completed_episodes.append((progress.episode_start, progress.episode_steps))
-                progress.recent_returns = (progress.recent_returns + [progress.episode_return])[-100:]
+                progress.recent_returns = (progress.recent_returns + [progress.episode_return])[-10:]
                 writer.add_scalar("charts/episodic_return", progress.episode_return, global_step)
                 obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, len(progress.completed_episodes)))
                 progress.episode_start, progress.episode_steps, progress.episode_return = buffer.added, 0, 0.0
