@@ -4,6 +4,7 @@ import csv
 import glob
 import importlib
 import io
+import itertools
 import json
 import math
 import os
@@ -12,8 +13,9 @@ import signal
 import sys
 import time
 import warnings
+from collections import namedtuple
 from dataclasses import asdict, dataclass, field, fields
-from typing import Literal, NamedTuple
+from typing import Literal
 
 import gymnasium as gym
 import numpy as np
@@ -32,8 +34,6 @@ class Args:
     """the name of this experiment (part of the run name)"""
     seed: int = 1
     """seed of the experiment"""
-    torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
     """use the GPU when torch sees one (--no-cuda: the CPU)"""
     track: bool = False
@@ -140,20 +140,16 @@ METAWORLD_PRESET = dict(total_timesteps=1_000_000, max_feedback=10_000, feedback
                         segment_len=25, hidden_dim=256, num_layers=3, batch_size=512, learning_rate=3e-4,
                         reward_epochs=10)
 GYM_PRESET = dict(DMC_PRESET, hidden_dim=256, num_layers=2, batch_size=256, learning_rate=3e-4)
-PRESETS = {
-    "walker-walk": DMC_PRESET,
-    "quadruped-walk": dict(DMC_PRESET, total_timesteps=1_000_000, feedback_every=30_000, learning_rate=1e-4),
-    "button-press": METAWORLD_PRESET,
-    "sweep-into": METAWORLD_PRESET,
-}
+PRESETS = {"walker-walk": DMC_PRESET, "button-press": METAWORLD_PRESET, "sweep-into": METAWORLD_PRESET,
+           "quadruped-walk": dict(DMC_PRESET, total_timesteps=1_000_000, feedback_every=30_000, learning_rate=1e-4)}
 CPU_SCALE = ("python pebble.py --env-id walker-walk --total-timesteps 100000 --hidden-dim 256 --num-layers 2 "
              "--batch-size 256 --max-feedback 1000 --feedback-per-session 100 --feedback-every 9000")  # README
 
 
 # Environments
 class DMCEnv(gym.Env):
-    """A dm_control suite task as a Gymnasium env: flat float32 observations, actions in [-1, 1] (quadruped's bounds
-    are not), episodes end by truncation; reset(seed=s) re-seeds the task's random state (the initial pose)."""
+    """A dm_control suite task as a Gymnasium env: flat observations, episodes end by truncation; reset(seed=s)
+    re-seeds the task's random state, so an episode is a function of s and the actions."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
@@ -161,35 +157,30 @@ class DMCEnv(gym.Env):
         from dm_control import suite
 
         self.dmc, self.render_mode = suite.load(domain, task), render_mode
-        obs_dim = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values())
+        obs_dim, spec = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values()), self.dmc.action_spec()
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
-        spec = self.dmc.action_spec()
-        self.low, self.high = spec.minimum, spec.maximum
-        self.action_space = gym.spaces.Box(-1.0, 1.0, spec.shape, np.float32)
-
-    def _flat(self, observation):
-        return np.concatenate([np.asarray(v, dtype=np.float32).ravel() for v in observation.values()])
+        self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32), spec.maximum.astype(np.float32))
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
             self.dmc.task.random.seed(seed)
-        return self._flat(self.dmc.reset().observation), {}
+        return np.concatenate([np.ravel(v) for v in self.dmc.reset().observation.values()]), {}
 
     def step(self, action):
-        step = self.dmc.step(self.low + (np.asarray(action, np.float64) + 1) / 2 * (self.high - self.low))
-        terminated = step.last() and step.discount == 0
-        return self._flat(step.observation), step.reward, terminated, step.last() and not terminated, {}
+        step = self.dmc.step(action)
+        obs = np.concatenate([np.ravel(v) for v in step.observation.values()])
+        return obs, step.reward, step.last() and step.discount == 0, step.last() and step.discount != 0, {}
 
     def render(self):
         return self.dmc.physics.render(height=240, width=320, camera_id=0)
 
 
 class MetaWorldSeeding(gym.Wrapper):
-    """Meta-World's reset ignores its seed argument; its seed() re-seeds the random vector (object and goal)."""
+    """Meta-World's reset ignores `seed`: here it seeds the generator of object and goal positions first."""
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
-            self.unwrapped.seed(seed)
+            self.env.unwrapped.seed(seed)
         return self.env.reset(options=options)
 
 
@@ -199,8 +190,7 @@ def env_kind(env_id: str) -> str:
 
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
-    domain, _, task = env_id.partition("-")
-    if (domain, task) in suite.ALL_TASKS:
+    if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
     if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
         return "metaworld"
@@ -216,7 +206,8 @@ def env_kind(env_id: str) -> str:
 
 
 def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]:
-    """Returns (env, episode length T); actions in [-1, 1], observations flat float32; seed every reset."""
+    """(env, episode length T): actions rescaled to [-1, 1], observations flat float32. Every reset is
+    seeded by the caller (episode_seed), so nothing carries over from one episode to the next."""
     kind = env_kind(env_id)
     if kind == "dmc":
         env = DMCEnv(*env_id.split("-", 1), render_mode)
@@ -225,56 +216,53 @@ def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]
         env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3", render_mode=render_mode,
                        disable_env_checker=True)  # its checker warns about the hidden goal's zero bounds
         env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: fixed 500-step episodes
-        # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not
-        # one of MT1's 50 fixed goals. One task is set for its settings; then the random vector (object and goal
-        # positions) is unfrozen and drawn from the env's own generator, seeded at each reset. The goal is hidden
-        # (its 3 entries are zeros), as in the reference's v2 envs, which were partially observable by default
+        # Reference code (utils.make_metaworld_env): a fresh goal from the task's whole range at every reset, not one
+        # of MT1's 50 fixed goals: one task for its settings, then the random vector (object and goal positions) is
+        # unfrozen and drawn from the env's generator. The goal is hidden (zeros), as in the reference's v2 envs
         env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
-        env.unwrapped._partially_observable = True
         env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
-        env.unwrapped._freeze_rand_vec, env.unwrapped.seeded_rand_vec = False, True
+        env.unwrapped._partially_observable, env.unwrapped._freeze_rand_vec = True, False
+        env.unwrapped.seeded_rand_vec = True
         env, episode_len = MetaWorldSeeding(env), env.spec.max_episode_steps or 500
     else:
         env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
         episode_len = env.spec.max_episode_steps
-        if not isinstance(env.action_space, gym.spaces.Box) or not isinstance(env.observation_space, gym.spaces.Box):
-            raise ValueError(f"--env-id {env_id!r} must have Box observation and action spaces")
-        if episode_len is None:
-            raise ValueError(f"--env-id {env_id!r} has no time limit (max_episode_steps), needed for the thresholds")
-    bounds = (np.full(env.action_space.shape, bound, np.float32) for bound in (-1, 1))  # float32: no casting warning
-    env = gym.wrappers.RescaleAction(env, *bounds)
+        if not (isinstance(env.action_space, gym.spaces.Box) and isinstance(env.observation_space, gym.spaces.Box)
+                and episode_len):
+            raise ValueError(f"--env-id {env_id!r} needs Box observation and action spaces and a time limit")
+    bound = np.ones(env.action_space.shape, np.float32)  # float32 bounds: no "precision lowered" warnings
+    env = gym.wrappers.RescaleAction(env, -bound, bound)
     space = gym.spaces.Box(-np.inf, np.inf, env.observation_space.shape, np.float32)
-    return gym.wrappers.TransformObservation(env, lambda obs: np.asarray(obs, dtype=np.float32), space), episode_len
+    return gym.wrappers.TransformObservation(env, lambda obs: np.asarray(obs, np.float32), space), episode_len
 
 
-TRAIN_STREAM, EVAL_STREAM = 0, 1
+TRAIN_STREAM, EVAL_STREAM = 0, 1  # the streams of episode seeds of the training and the evaluation envs
+
+
+def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
+    """Independent streams from one run seed: query sampler, teacher, random actions of the seed steps (PEBBLE)."""
+    return np.random.SeedSequence(seed).spawn(3)
 
 
 def episode_seed(run_seed: int, stream: int, episode: int) -> int:
-    """The reset seed of one episode of the training or evaluation env: any episode can be played again alone (a
-    checkpoint needs no environment state), and runs with different seeds share no episode seed."""
+    """The reset seed of episode `episode` of a stream: a 32-bit draw of SeedSequence([run_seed, stream, episode]),
+    so any episode can be played again alone, and runs with different seeds share no episode (up to chance)."""
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
-
-
-def numpy_seeds(seed: int) -> tuple[np.random.SeedSequence, ...]:
-    """Independent streams for the query sampler, the teacher and the seed steps' random actions."""
-    return tuple(np.random.SeedSequence(seed).spawn(3))
 
 
 # Networks
 def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.ReLU) -> nn.Sequential:
-    layers, dim = [], in_dim
-    for _ in range(num_layers):
-        layers += [nn.Linear(dim, hidden_dim), activation()]
-        dim = hidden_dim
-    return nn.Sequential(*layers, nn.Linear(dim, out_dim))
+    layers = [m for i in range(num_layers) for m in (nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation())]
+    return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
 
 
-def orthogonal_init(module: nn.Module):
+def orthogonal_init(module: nn.Module) -> nn.Module:
     """Reference code (utils.weight_init, applied to actor and critics): orthogonal weights, zero biases."""
-    if isinstance(module, nn.Linear):
-        nn.init.orthogonal_(module.weight)
-        nn.init.zeros_(module.bias)
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight)
+            nn.init.zeros_(layer.bias)
+    return module
 
 
 class Actor(nn.Module):
@@ -282,8 +270,7 @@ class Actor(nn.Module):
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
-        self.net = mlp(obs_dim, 2 * action_dim, hidden_dim, num_layers)
-        self.apply(orthogonal_init)
+        self.net = orthogonal_init(mlp(obs_dim, 2 * action_dim, hidden_dim, num_layers))
 
     def forward(self, obs):
         mean, log_std = self.net(obs).chunk(2, dim=-1)
@@ -300,9 +287,8 @@ class TwinCritic(nn.Module):
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
-        self.q1 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
-        self.q2 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
-        self.apply(orthogonal_init)
+        self.q1, self.q2 = (mlp(obs_dim + action_dim, 1, hidden_dim, num_layers) for _ in range(2))
+        orthogonal_init(self)
 
     def forward(self, obs, action):
         x = torch.cat([obs, action], dim=-1)
@@ -310,16 +296,15 @@ class TwinCritic(nn.Module):
 
 
 class RewardEnsemble(nn.Module):
-    """Appendix "Reward model": members of 3 x 256 LeakyReLU layers with a tanh-bounded output."""
+    """Appendix "Reward model": members of 3 x 256 LeakyReLU layers with a tanh-bounded output; (..., obs+action)
+    -> each member's reward (members, ..., 1)."""
 
     def __init__(self, obs_dim, action_dim, size):
         super().__init__()
         self.members = nn.ModuleList(
-            nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh()) for _ in range(size)
-        )
+            nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh()) for _ in range(size))
 
     def forward(self, obs_action):
-        """(..., obs+action) -> per-member rewards (members, ..., 1)."""
         return torch.stack([member(obs_action) for member in self.members])
 
 
@@ -350,7 +335,7 @@ def temperature_loss(log_alpha, log_prob, target_entropy: float) -> torch.Tensor
 
 
 def optimize(optimizer, loss: torch.Tensor, name: str):
-    """One gradient step; a non-finite loss stops the run before it, so the networks stay finite."""
+    """One gradient step; a non-finite loss stops the run before it (FloatingPointError): the networks stay finite."""
     if not torch.isfinite(loss).all():
         raise FloatingPointError(f"non-finite {name} ({loss.detach().flatten()[0].item()})")
     optimizer.zero_grad()
@@ -358,12 +343,7 @@ def optimize(optimizer, loss: torch.Tensor, name: str):
     optimizer.step()
 
 
-class Batch(NamedTuple):  # transitions sampled from the replay buffer, one row each
-    obs: torch.Tensor
-    actions: torch.Tensor
-    rewards: torch.Tensor
-    next_obs: torch.Tensor
-    terminated: torch.Tensor
+Batch = namedtuple("Batch", "obs actions rewards next_obs terminated")  # replay-buffer rows
 
 
 def sac_update(batch, rewards, actor, critic, critic_target, log_alpha, actor_opt, critic_opt, alpha_opt, gamma):
@@ -411,18 +391,20 @@ class ReplayBuffer:
         idx = torch.randint(self.size, (batch_size,), device=self.device)
         return Batch(self.obs[idx], self.actions[idx], self.rewards[idx], self.next_obs[idx], self.terminated[idx])
 
+    def state_dict(self) -> dict:  # the filled rows only, copied (a slice would save the whole tensor)
+        counters = {"pos": self.pos, "size": self.size, "added": self.added}
+        return {name: getattr(self, name)[: self.size].clone() for name in self.fields} | counters
 
-def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
+    def load_state_dict(self, state: dict):
+        for name in self.fields:
+            getattr(self, name)[: state["size"]] = state[name]
+        self.pos, self.size, self.added = state["pos"], state["size"], state["added"]
+
+
+def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
     """Eq. (8) without the log (docs): distance to the k-th nearest neighbour in `reference`, not counting the
-    state itself (the (k+1)-th smallest); chunk x chunk blocks bound the memory, the k+1 nearest merged per block."""
-    kth = []
-    for i in range(0, len(states), chunk):
-        nearest = torch.empty(len(states[i : i + chunk]), 0, device=states.device)
-        for j in range(0, len(reference), chunk):
-            candidates = torch.cat([nearest, torch.cdist(states[i : i + chunk], reference[j : j + chunk])], dim=1)
-            nearest = candidates.topk(min(k + 1, candidates.shape[1]), dim=1, largest=False).values
-        kth.append(nearest[:, -1:])
-    return torch.cat(kth)
+    state itself (its zero distance): the (k+1)-th smallest. Memory: states x reference distances."""
+    return torch.cdist(states, reference).kthvalue(min(k + 1, len(reference)), dim=1, keepdim=True).values
 
 
 def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor:
@@ -431,7 +413,7 @@ def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor
     return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
 
-class RunningMeanStd:  # Chan et al.'s parallel update (the reference code's was wrong)
+class RunningMeanStd:  # of the kNN reward: Chan et al.'s parallel update (the reference code's was wrong)
     def __init__(self):
         self.mean, self.var, self.count = 0.0, 1.0, 0
 
@@ -442,10 +424,6 @@ class RunningMeanStd:  # Chan et al.'s parallel update (the reference code's was
         m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total
         self.mean, self.var, self.count = self.mean + delta * batch_count / total, m2 / total, total
 
-    @property
-    def std(self):
-        return math.sqrt(self.var)
-
 
 def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
     """PEBBLE's relabelling: r_hat = ensemble mean for every stored transition, the wrapped buffer's too."""
@@ -453,12 +431,6 @@ def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 163
         for i in range(0, buffer.size, chunk):
             obs_action = torch.cat([buffer.obs[i : i + chunk], buffer.actions[i : i + chunk]], dim=-1)
             buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
-
-
-def usable_episodes(completed: list, buffer: ReplayBuffer, segment_len: int, recent: int) -> list:
-    """The query pool: the last `recent` (0 = all) complete episodes still whole in the buffer, long enough."""
-    usable = [(s, n) for s, n in completed if n >= segment_len and buffer.added - s <= buffer.capacity]
-    return usable[-recent:] if recent else usable
 
 
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
@@ -471,18 +443,16 @@ def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smooth
 def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[int, int]:
     """(correct, counted) over strict labels: an equal label has no right side (the reference code counted it)."""
     strict = y != 0.5
-    predicted_second = segment_returns[:, 1] > segment_returns[:, 0]
-    return int((predicted_second == (y > 0.5))[strict].sum()), int(strict.sum())
+    return int(((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5))[strict].sum()), int(strict.sum())
 
 
 def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs) -> tuple[float, float]:
     """Algorithm 3, reward learning: up to max_epochs passes over D, one shuffle per member, until 97% accuracy."""
-    n, accuracy, loss_value = len(y), float("nan"), float("nan")
     for _ in range(max_epochs):
-        orders = [torch.randperm(n, device=y.device) for _ in reward_model.members]
+        orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
         correct = counted = 0
         losses = []
-        for start in range(0, n, args.reward_batch_size):
+        for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
                 idx = order[start : start + args.reward_batch_size]
@@ -492,11 +462,10 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
                 correct, counted = correct + c, counted + m
             optimize(optimizer, loss, "reward-model loss")
             losses.append(loss.item() / len(reward_model.members))
-        loss_value = float(np.mean(losses))
         accuracy = correct / counted if counted else float("nan")
         if accuracy > 0.97:
             break
-    return loss_value, accuracy
+    return float(np.mean(losses)), accuracy
 
 
 def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes) -> int:
@@ -506,196 +475,169 @@ def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: in
     return int(np.sum(session_sizes[:n_sessions]))
 
 
-# Plumbing
+# Plumbing: command line, files, evaluation, the loop's counters
+def fail(message: str, code: int = 2):
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
 def parse_args() -> Args:
-    """tyro's command line; its error box (an unknown choice, a word for a number) becomes one `error:` line."""
+    """tyro's command line (--help lists every flag and choice); its error box becomes one `error: ...` line."""
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
             args = tyro.cli(Args)
-    except SystemExit as error:
-        if not error.code:  # --help
-            raise
-        text = []
-        for line in captured.getvalue().splitlines()[1:]:  # the box's lines after its title
-            if line.strip("│ ").startswith("──"):  # the rule before "For full helptext"
-                break
-            text.append(line.strip("│╭╰╮╯ "))
-        fail(" ".join(line for line in text if line) or captured.getvalue().strip())
+    except SystemExit as exit_:
+        if exit_.code:  # not --help
+            lines = [line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:]]  # the box's text
+            fail(" ".join(line for line in itertools.takewhile(lambda x: x[:1] != "─", lines) if line))
+        raise
     sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
     return args
 
 
-TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher's, --teacher-* here
 RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name", "capture_video")
+TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher's, --teacher-* here
 
 
 def resolve(args: Args) -> Args:
-    """The run's configuration. --resume DIR: the one saved in DIR, refusing a flag that would change the
-    experiment. Otherwise every field left None from the task's preset and the teacher's; a flag the user gave wins."""
+    """Every field left None from the task's preset and the teacher's (a flag the user gave wins). With
+    --resume DIR: the configuration saved in DIR; a flag that would change the experiment is refused."""
     if args.resume:
         if not os.path.isfile(os.path.join(args.resume, "checkpoint.pt")):
             raise ValueError(f"--resume {args.resume!r}: no checkpoint.pt there (a run stopped before its first "
                              "checkpoint has to start again)")
         with open(os.path.join(args.resume, "config.json")) as f:
-            saved = json.load(f)
-        missing = [field.name for field in fields(Args) if field.name not in saved]
-        if missing:
+            saved, names = json.load(f), [f.name for f in fields(Args)]
+        if missing := [name for name in names if name not in saved]:
             raise ValueError(f"--resume {args.resume!r}: its config.json has no {', '.join(missing)} (written by an "
-                             "older pebble.py, whose run this one cannot continue); start a new run")
-        for name, default in ((field.name, field.default) for field in fields(Args)):
-            if name not in RESUME_MAY_CHANGE and getattr(args, name) not in (default, saved[name]):
+                             f"older {os.path.basename(__file__)}, whose run this one cannot continue)")
+        for name in (name for name in names if name not in RESUME_MAY_CHANGE):
+            if getattr(args, name) not in (getattr(Args(), name), saved[name]):
                 raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has "
-                                 f"{saved[name]!r}, got {getattr(args, name)!r}); start a new run for another "
-                                 "configuration")
-        return Args(**{**saved, **{name: getattr(args, name) for name in RESUME_MAY_CHANGE}, "output_dir": args.resume})
+                                 f"{saved[name]!r}, got {getattr(args, name)!r})")
+        return Args(**saved | {name: getattr(args, name) for name in RESUME_MAY_CHANGE} | {"output_dir": args.resume})
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     teacher = make_teacher(args.teacher)
-    defaults = PRESETS.get(args.env_id.removesuffix("-v3"), family) | {
-        f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}
-    for key, value in defaults.items():
+    preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
+    for key, value in (preset | {f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}).items():
         if getattr(args, key) is None:
             setattr(args, key, value)
     args.buffer_size = args.buffer_size or args.total_timesteps
     return args
 
 
-def check_args(args: Args, episode_len: int) -> str | None:
-    """The first problem with the configuration as one line, or None."""
+def check_args(args: Args, episode_len: int):
+    """ValueError naming the first number out of its range (tyro checks types and choices)."""
     a, pretrain = args, args.seed_steps + args.unsup_steps
-    checks = [  # (field, ok, the rule)
-        ("seed", a.seed >= 0, ">= 0"), ("teacher_beta", a.teacher_beta >= 0, ">= 0 (inf = rational)"),
-        ("teacher_gamma", 0 < a.teacher_gamma <= 1, "in (0, 1]"),
-        *[(n, 0 <= getattr(a, n) <= 1, "in [0, 1]") for n in ("teacher_eps_mistake", "teacher_eps_skip",
-                                                              "teacher_eps_equal")],
-        *[(n, getattr(a, n) >= 1, ">= 1") for n in (
-            "max_feedback", "feedback_every", "hidden_dim", "num_layers", "batch_size", "reward_batch_size",
-            "reward_ensemble_size", "eval_every", "eval_episodes", "knn_k", "candidate_multiplier", "reward_epochs",
-            "target_update_every")],
-        *[(n, getattr(a, n) >= 0, ">= 0") for n in ("seed_steps", "unsup_steps", "critic_reset_updates",
-                                                    "query_recent_episodes", "checkpoint_every")],
-        *[(n, getattr(a, n) > 0, "> 0") for n in ("learning_rate", "alpha_lr", "reward_lr", "init_temperature")],
-        *[(n, 0 < getattr(a, n) <= 1, "in (0, 1]") for n in ("gamma", "tau")],
-        ("label_smoothing", 0 <= a.label_smoothing < 1, "in [0, 1)"),
-        ("feedback_per_session", 1 <= a.feedback_per_session <= a.max_feedback,
-         f"in [1, --max-feedback={a.max_feedback}]"),
-        ("segment_len", 1 <= a.segment_len <= episode_len, f"in [1, {episode_len}] (the episode length of {a.env_id})"),
-        ("total_timesteps", a.total_timesteps > pretrain, f"> --seed-steps + --unsup-steps ({pretrain})"),
-        ("buffer_size", a.buffer_size >= max(a.batch_size, episode_len), ">= max(batch size, episode length)"),
-    ]
-    return next((f"--{name.replace('_', '-')} must be {rule}, got {getattr(a, name)}" for name, ok, rule in checks
-                 if not ok), None)
-
-
-def fail(message: str, code: int = 2):
-    print(f"error: {message}", file=sys.stderr)
-    sys.exit(code)
-
-
-def save_labels(path: str, **arrays):
-    """labels/session_NNNN.npz: written, then renamed, so that a kill never leaves a half-written file."""
-    np.savez(f"{path}.tmp.npz", **arrays)
-    os.replace(f"{path}.tmp.npz", path)
+    rules = [("seed", a.seed >= 0, ">= 0"), ("teacher_beta", a.teacher_beta >= 0, ">= 0 (inf = rational)"),
+             *[(n, 0 < getattr(a, n) <= 1, "in (0, 1]") for n in ("teacher_gamma", "gamma", "tau")],
+             *[(n, 0 <= getattr(a, n) <= 1, "in [0, 1]") for n in ("teacher_eps_mistake", "teacher_eps_skip",
+                                                                   "teacher_eps_equal")],
+             *[(n, getattr(a, n) >= 1, ">= 1") for n in (
+                 "max_feedback", "feedback_every", "hidden_dim", "num_layers", "batch_size", "reward_batch_size",
+                 "reward_ensemble_size", "eval_every", "eval_episodes", "knn_k", "candidate_multiplier",
+                 "reward_epochs", "target_update_every")],
+             *[(n, getattr(a, n) >= 0, ">= 0") for n in ("seed_steps", "unsup_steps", "critic_reset_updates",
+                                                         "query_recent_episodes", "checkpoint_every")],
+             *[(n, getattr(a, n) > 0, "> 0") for n in ("learning_rate", "alpha_lr", "reward_lr", "init_temperature")],
+             ("label_smoothing", 0 <= a.label_smoothing < 1, "in [0, 1)"),
+             ("feedback_per_session", 1 <= a.feedback_per_session <= a.max_feedback,
+              f"in [1, --max-feedback={a.max_feedback}]"),
+             ("segment_len", 1 <= a.segment_len <= episode_len, f"in [1, {episode_len}] (the episode length)"),
+             ("total_timesteps", a.total_timesteps > pretrain, f"> --seed-steps + --unsup-steps ({pretrain})"),
+             ("buffer_size", a.buffer_size >= max(a.batch_size, episode_len), ">= max(batch size, episode length)")]
+    for name, ok, rule in rules:
+        if not ok:
+            raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {getattr(a, name)}")
 
 
 def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> dict:
-    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz), as
+    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz) as
     inputs0, inputs1 (obs and action per step), y and the coverage features."""
     files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
                                                       or glob.glob(os.path.join(path, "session_*.npz")))
-    if not files:
-        raise ValueError(f"--labels-from {path!r}: no labels found (expected session_*.npz files)")
     sessions = [dict(np.load(file)) for file in files]
-    for file, s in zip(files, sessions):
-        if s["obs0"].shape[1:] != (segment_len, obs_dim) or s["actions0"].shape[1:] != (segment_len, action_dim):
-            raise ValueError(f"--labels-from {file!r}: segments of shape {s['obs0'].shape[1:]} and actions "
-                             f"{s['actions0'].shape[1:]} do not fit this run ({segment_len}, {obs_dim}) and "
-                             f"({segment_len}, {action_dim})")
-    kept = {key: np.concatenate([s[key][s["keep"]] for s in sessions])
-            for key in ("obs0", "actions0", "obs1", "actions1", "y")}
-    n = len(kept["y"])
-    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": kept["y"].astype(np.float32),
+    if not sessions or any(s["obs0"].shape[1:] + s["actions0"].shape[2:] != (segment_len, obs_dim, action_dim)
+                           for s in sessions):
+        raise ValueError(f"--labels-from {path!r}: no session_*.npz files, or segments that do not fit this run "
+                         f"({segment_len} steps of {obs_dim} observations and {action_dim} actions)")
+    kept = {k: np.concatenate([s[k][s["keep"]] for s in sessions]) for k in ("obs0", "actions0", "obs1", "actions1")}
+    y = np.concatenate([s["y"][s["keep"]] for s in sessions]).astype(np.float32)
+    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": y,
             "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1),
-            "features": np.concatenate([kept["obs0"].reshape(n, -1), kept["obs1"].reshape(n, -1)], axis=1)}
+            "features": np.concatenate([kept["obs0"].reshape(len(y), -1), kept["obs1"].reshape(len(y), -1)], 1)}
 
 
-def save_checkpoint(path: str, state: dict):
-    """Serialised in memory (a full disk is then a plain OSError), written to a temporary file, flushed to disk and
-    renamed: a kill during the write leaves the previous checkpoint intact."""
-    tmp, serialised = f"{path}.tmp", io.BytesIO()
-    torch.save(state, serialised)
+def save_file(path: str, data: bytes):
+    """Written to a temporary file, flushed to disk, then renamed: a kill during the write leaves the old file."""
     try:
-        with open(tmp, "wb") as f:
-            f.write(serialised.getbuffer())
-            f.flush()
+        with open(f"{path}.tmp", "wb") as f:
+            f.write(data)
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(f"{path}.tmp", path)
     finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        if os.path.exists(f"{path}.tmp"):
+            os.remove(f"{path}.tmp")
 
 
 def evaluate(actor, reward_model, env, seeds: list[int], device) -> dict:
-    """Mean-action episodes (one per reset seed) with the true reward (B-Pref's metric), Meta-World success (at any
-    step), and the Pearson correlation of learned and true per-step rewards (the paper's reward analysis)."""
-    returns, successes, true_rewards, learned_rewards = [], [], [], []
+    """Mean-action episodes (one per reset seed) with the true reward (B-Pref's metric), Meta-World success
+    (at any step), and the Pearson correlation of learned and true per-step rewards (the paper's analysis)."""
+    returns, successes, true_rewards, learned = [], [], [], []
     for seed in seeds:
-        (obs, _), done = env.reset(seed=seed), False
+        (obs, _), done, success = env.reset(seed=seed), False, False
         returns.append(0.0)
-        successes.append(False)
         while not done:
             with torch.no_grad():
-                obs_t = torch.as_tensor(obs, device=device)
-                action = torch.tanh(actor(obs_t)[0])  # the mean action
+                action = torch.tanh(actor(torch.as_tensor(obs, device=device))[0])  # the mean action
                 if reward_model is not None:
-                    learned_rewards.append(reward_model(torch.cat([obs_t, action])).mean().item())
+                    learned.append(reward_model(torch.cat([torch.as_tensor(obs, device=device), action])).mean().item())
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
-            done, returns[-1] = terminated or truncated, returns[-1] + reward
+            done, returns[-1], success = terminated or truncated, returns[-1] + reward, success or info.get("success")
             true_rewards.append(reward)
-            successes[-1] = successes[-1] or bool(info.get("success", False))
+        successes.append(bool(success))
     correlation = float("nan")
-    if learned_rewards and np.std(learned_rewards) > 0 and np.std(true_rewards) > 0:
-        correlation = float(np.corrcoef(learned_rewards, true_rewards)[0, 1])
+    if learned and np.std(learned) > 0 and np.std(true_rewards) > 0:
+        correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
 
 
-def seconds_per_update(args: Args, obs_dim: int, action_dim: int, repeats: int = 3) -> float:
-    """One SAC update's time at the run's sizes, on throwaway networks and data, timed before the run seeds torch."""
+def projected_cpu_hours(args: Args, obs_dim: int, action_dim: int) -> float:
+    """The run's SAC updates on this CPU, from 3 updates of throwaway networks on random data (before a warm-up
+    update), timed before the run seeds torch (its state is untouched)."""
     nets = [cls(obs_dim, action_dim, args.hidden_dim, args.num_layers) for cls in (Actor, TwinCritic, TwinCritic)]
     log_alpha = torch.zeros((), requires_grad=True)
     optimizers = [torch.optim.Adam(p) for p in (nets[0].parameters(), nets[1].parameters(), [log_alpha])]
     batch = Batch(*(torch.rand(args.batch_size, dim) for dim in (obs_dim, action_dim, 1, obs_dim, 1)))
-    sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)  # warm-up
-    start = time.perf_counter()
-    for _ in range(repeats):
+    times = []
+    for _ in range(4):
         sac_update(batch, batch.rewards, *nets, log_alpha, *optimizers, args.gamma)
-    return (time.perf_counter() - start) / repeats
+        times.append(time.perf_counter())
+    return (times[-1] - times[0]) / 3 * (args.total_timesteps - args.seed_steps) / 3600
 
 
 @dataclass
 class Progress:
-    """Every counter and log the main loop carries. The checkpoint saves it with asdict() and a resume restores it
-    with Progress(**saved), so a new field is checkpointed by construction."""
+    """Every counter the main loop carries: a checkpoint saves asdict(progress), a resume restores
+    Progress(**saved), so a counter added here is checkpointed by construction."""
 
     global_step: int = 0
-    next_feedback_step: int = 0
-    episode_start: int = 0  # buffer.added at the current episode's first transition
+    episode_start: int = 0  # buffer.added at the running episode's first transition
     episode_steps: int = 0
     episode_return: float = 0.0
     completed_episodes: list = field(default_factory=list)  # (first transition number, length) of each
-    recent_returns: list = field(default_factory=list)  # true returns of the last 10 complete episodes
-    reward_ready: bool = False  # SAC trains on buffer.rewards: r_hat (or the true reward, --ground-truth-reward)
+    recent_returns: list = field(default_factory=list)  # true returns of the last 10 training episodes
     sessions_done: int = 0
     feedback_used: int = 0
+    next_feedback_step: int = 0
     eval_rows: list = field(default_factory=list)  # eval.csv
-    last_eval: float = math.nan
-    updates_on_knn_reward: int = 0
-    updates_on_learned_reward: int = 0  # the true reward with --ground-truth-reward
-    relabels: int = 0
-    critic_resets: int = 0
+    reward_ready: bool = False  # SAC trains on buffer.rewards: r_hat (or the true reward), no longer the kNN reward
     overhead_seconds: float = 0.0  # PEBBLE's own parts: kNN reward, queries, reward learning, relabelling, r_hat
     wall_time: float = 0.0
+    counts: dict = field(default_factory=lambda: dict.fromkeys(  # how often each phase ran, for the last line
+        ("updates_on_knn_reward", "updates_on_learned_reward", "relabels", "critic_resets"), 0))
 
     @contextlib.contextmanager
     def overhead(self):
@@ -706,18 +648,17 @@ class Progress:
 
 if __name__ == "__main__":
     args = parse_args()
-    try:
+    try:  # every user error: one line, before any work
         args = resolve(args)
         env, episode_len = make_env(args.env_id)
+        eval_env, _ = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-        problem, imported = check_args(args, episode_len), None
-        if not problem and args.labels_from and not args.resume:
+        check_args(args, episode_len)
+        imported = None
+        if args.labels_from and not args.resume:
             imported = load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
     except (ValueError, OSError, KeyError) as error:
         fail(str(error))
-    if problem:
-        fail(problem)
-    eval_env, _ = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
     if args.capture_video:  # render one frame now rather than fail at the first evaluation
         try:
             import moviepy  # noqa: F401
@@ -726,24 +667,28 @@ if __name__ == "__main__":
                 eval_env.reset(seed=0)
                 eval_env.render()
         except Exception as error:
-            print(f"error: --capture-video cannot render ({type(error).__name__}: "
-                  f"{(str(error) or '-').splitlines()[0]}); it needs moviepy and, without a display, MUJOCO_GL=egl "
-                  "(GPU) or MUJOCO_GL=osmesa (CPU)", file=sys.stderr, flush=True)
+            print(f"error: --capture-video cannot render ({type(error).__name__}: {(str(error) or '-').splitlines()[0]}"
+                  "); it needs moviepy and, without a display, MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU)",
+                  file=sys.stderr, flush=True)
             os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
     run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
-    output_dir = args.output_dir or os.path.join("runs", run_name)
+    output_dir, config = args.output_dir or os.path.join("runs", run_name), asdict(args)
     if not args.resume and os.path.isdir(output_dir) and os.listdir(output_dir):
         fail(f"--output-dir {output_dir!r} already holds a run; continue it with --resume {output_dir} or choose "
              "another directory")
-    config = asdict(args)
     try:
         os.makedirs(os.path.join(output_dir, "labels"), exist_ok=True)
         if not args.resume:
-            with open(os.path.join(output_dir, "config.json"), "w") as f:
-                json.dump(config, f, indent=2)
+            save_file(os.path.join(output_dir, "config.json"), json.dumps(config, indent=2).encode())
     except OSError as error:
         fail(f"cannot write to --output-dir {output_dir!r}: {error.strerror}")
     print("configuration:\n" + "\n".join(f"  {key}: {value}" for key, value in config.items()))
+    device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
+    print(f"device: {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu'}"
+          + ("" if device.type == "cuda" else " (torch sees no GPU)" if args.cuda else " (--no-cuda)"), flush=True)
+    if device.type == "cpu" and args.hidden_dim * args.batch_size > 256 * 256:  # beyond the CPU scale of the README
+        print(f"note: this run needs about {projected_cpu_hours(args, obs_dim, action_dim):.0f} h on this CPU "
+              f"(projected); use a GPU, or the CPU scale of docs/results.md: {CPU_SCALE}", flush=True)
 
     from torch.utils.tensorboard import SummaryWriter
 
@@ -755,25 +700,13 @@ if __name__ == "__main__":
     checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False) if args.resume else None
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
-    device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
-    print(f"device: {device} (" + (torch.cuda.get_device_name(device) if device.type == "cuda"
-                                   else "torch sees no GPU" if args.cuda else "--no-cuda") + ")", flush=True)
-    if device.type == "cpu" and args.hidden_dim * args.batch_size > 256 * 256:  # above the README's CPU scale
-        seconds = seconds_per_update(args, obs_dim, action_dim)
-        print(f"note: one SAC update of this size takes {1000 * seconds:.0f} ms on this CPU, so this run needs about "
-              f"{seconds * (args.total_timesteps - args.seed_steps) / 3600:.0f} hours; use a GPU, or the README's CPU "
-              f"scale: {CPU_SCALE}", flush=True)
 
-    # Seeding: numpy (pairs, teacher, seed steps' actions: independent streams), torch (networks, batches);
-    # each environment reset has its own seed (episode_seed)
+    # Seeding: numpy (query sampler, teacher, seed steps' actions: independent streams), torch (networks,
+    # batches), every reset (episode_seed): an env is a function of its episode's seed and actions
     sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
     rng, action_rng = np.random.default_rng(sampler_seed), np.random.default_rng(action_seed)
     torch.manual_seed(args.seed)
-    # MuJoCo's float64 states cast to float32 give denormal numbers (tiny velocities), which make
-    # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
-    torch.set_flush_denormal(True)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-
+    torch.set_flush_denormal(True)  # MuJoCo's tiny float32 velocities are denormals, ~10x slower on a CPU
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
@@ -784,150 +717,139 @@ if __name__ == "__main__":
     alpha_optimizer = torch.optim.Adam([log_alpha], lr=args.alpha_lr)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    learner = {"actor": actor, "critic": critic, "critic_target": critic_target, "reward_model": reward_model,
-               "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
-               "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer}  # checkpointed by state_dict
-    buffer = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device)
-    intrinsic_stats = RunningMeanStd()
+    buffer, intrinsic_stats = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device), RunningMeanStd()
+    learners = {"actor": actor, "critic": critic, "critic_target": critic_target, "reward_model": reward_model,
+                "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
+                "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer, "buffer": buffer}
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     pretrain_end = args.seed_steps + args.unsup_steps
-    planned = planned_labels(args.total_timesteps, pretrain_end, args.feedback_every, session_sizes)
-    if planned < args.max_feedback and not args.ground_truth_reward:
-        print(f"note: only {planned} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
+    spent = planned_labels(args.total_timesteps, pretrain_end, args.feedback_every, session_sizes)
+    if spent < args.max_feedback and not args.ground_truth_reward:
+        print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
               f"steps (sessions from step {pretrain_end + 1}, every {args.feedback_every} steps)")
-    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset D of Algorithm 3
-    if imported is not None:  # earlier labels: free, not counted in this run's budget
-        for key, part in imported.items():
-            preferences[key].append(part if key == "features" else torch.as_tensor(part, device=device))
+    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset D, per session
+    if imported:  # earlier labels: free, not counted in this run's budget
+        for key, value in imported.items():
+            preferences[key].append(torch.as_tensor(value, device=device) if key != "features" else value)
         print(f"--labels-from: {len(imported['y'])} labels from {args.labels_from}")
     progress = Progress(next_feedback_step=pretrain_end + 1)
-
-    if checkpoint:  # --resume: every part back, key by key (the keys that checkpoint_state below writes)
-        print(f"resuming from the checkpoint at step {checkpoint['progress']['global_step']}")
-        for name, part in learner.items():
+    if checkpoint:  # --resume: every part back, key by key
+        progress = Progress(**checkpoint["progress"])
+        print(f"resuming from the checkpoint at step {progress.global_step}")
+        for name, part in learners.items():
             part.load_state_dict(checkpoint[name])
         with torch.no_grad():
             log_alpha.copy_(checkpoint["log_alpha"])
         vars(intrinsic_stats).update(checkpoint["intrinsic_stats"])
-        for name in ReplayBuffer.fields:
-            getattr(buffer, name)[: checkpoint["buffer"]["size"]] = checkpoint["buffer"][name]
-        buffer.pos, buffer.size, buffer.added = (checkpoint["buffer"][k] for k in ("pos", "size", "added"))
-        preferences = {key: [part.to(device) if torch.is_tensor(part) else part for part in parts]
-                       for key, parts in checkpoint["preferences"].items()}
-        teacher = checkpoint["teacher"]
-        rng.bit_generator.state, action_rng.bit_generator.state = checkpoint["rng"], checkpoint["action_rng"]
+        preferences = {key: [v.to(device) if torch.is_tensor(v) else v for v in values]
+                       for key, values in checkpoint["preferences"].items()}
+        teacher, rng, action_rng = checkpoint["teacher"], checkpoint["rng"], checkpoint["action_rng"]
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
-        progress = Progress(**checkpoint["progress"])
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {output_dir!r} has already finished ({progress.global_step} steps)")
-        later_sessions = sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]
-        if later_sessions:  # asked after the checkpoint: kept aside, the resumed run asks these sessions again
-            aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
-            os.makedirs(aside, exist_ok=True)
-            for path in later_sessions:
-                shutil.move(path, aside)
-    eval_path = os.path.join(output_dir, "eval.csv")
-    eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
-                   "wall_time", "overhead_seconds"]
+        aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
+        for path in sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]:
+            os.makedirs(aside, exist_ok=True)  # asked after the checkpoint: kept aside, the run asks them again
+            shutil.move(path, aside)
+    eval_path, eval_fields = os.path.join(output_dir, "eval.csv"), ["step", "episode_return", "episode_return_std",
+                                                                    "success_rate", "feedback", "reward_correlation",
+                                                                    "wall_time", "overhead_seconds"]
     with open(f"{eval_path}.tmp", "w", newline="") as f:  # rows logged after the checkpoint are dropped
         csv.DictWriter(f, eval_fields).writeheader()
         csv.DictWriter(f, eval_fields).writerows(progress.eval_rows)
     os.replace(f"{eval_path}.tmp", eval_path)
-    # The training env as at the checkpoint: the current episode's seeded reset, then its actions replayed from the
-    # buffer (MuJoCo is deterministic, so the env is exactly where it was; a new run has none to replay)
+    # The training env at the start of its running episode (that episode's seed), then that episode's actions so far
+    # again: MuJoCo is deterministic, so a resumed env is exactly where it was (a new run has no actions to replay)
     obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, len(progress.completed_episodes)))
     for i in range(progress.episode_steps):
         obs = env.step(buffer.actions[(progress.episode_start + i) % buffer.capacity].cpu().numpy())[0]
-    if args.capture_video:  # the first episode of each evaluation, as videos/step_N-episode-M.mp4
+    if args.capture_video:  # the first episode of each evaluation: videos/step_N-episode-M.mp4
         eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(output_dir, "videos"),
                                             episode_trigger=lambda episode: episode % args.eval_episodes == 0)
-
-    def checkpoint_state() -> dict:
-        """Everything the run needs to go on exactly; the environments need nothing (seeded resets, replay)."""
-        return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
-                **{name: part.state_dict() for name, part in learner.items()}, "log_alpha": log_alpha.detach(),
-                "intrinsic_stats": vars(intrinsic_stats), "preferences": preferences, "teacher": teacher,
-                "buffer": {name: getattr(buffer, name)[: buffer.size].clone() for name in ReplayBuffer.fields}
-                | {"pos": buffer.pos, "size": buffer.size, "added": buffer.added},
-                "rng": rng.bit_generator.state, "action_rng": action_rng.bit_generator.state,
-                "torch_rng": torch.get_rng_state(),
-                "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
-
     stop = []  # SIGTERM (a cluster's time limit) or SIGINT (Ctrl-C): checkpoint at the end of this step, then exit
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
     signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
     start_time = last_print = time.time() - progress.wall_time
+
+    def checkpoint_state() -> dict:
+        """Everything the run needs to go on exactly after this step, but the env (reset with its episode's seed,
+        then the episode's actions replayed from the buffer)."""
+        return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
+                **{name: part.state_dict() for name, part in learners.items()}, "log_alpha": log_alpha.detach(),
+                "intrinsic_stats": vars(intrinsic_stats), "preferences": preferences, "teacher": teacher, "rng": rng,
+                "action_rng": action_rng, "torch_rng": torch.get_rng_state(),
+                "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
+
     # Main loop: Algorithm 3 (PEBBLE) with Algorithm 2 (unsupervised pre-training) for the first steps
     try:
         for global_step in range(progress.global_step + 1, args.total_timesteps + 1):
             progress.global_step = global_step
             reset_critic = args.ground_truth_reward and global_step == pretrain_end + 1  # as PEBBLE, on the true reward
             # Feedback session (Algorithm 3, reward learning): the first at the end of pre-training, then every
-            # feedback_every steps: SAMPLE() queries, ask the teacher, save the labels, learn r_hat, relabel
+            # feedback_every steps. SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat, relabel. The
+            # query pool: of the episodes still whole in the buffer and long enough, the last query_recent_episodes
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
-                    and progress.sessions_done < len(session_sizes) and (usable := usable_episodes(
-                        progress.completed_episodes, buffer, args.segment_len, args.query_recent_episodes))):
-                size = int(session_sizes[progress.sessions_done])
+                    and progress.sessions_done < len(session_sizes) and (usable := [
+                        (s, n) for s, n in progress.completed_episodes if n >= args.segment_len
+                        and buffer.added - s <= buffer.capacity][-args.query_recent_episodes:])):  # 0: all
                 with progress.overhead():
-                    sampler = args.sampler if progress.reward_ready else "uniform"  # reference code: the first uniform
+                    size = int(session_sizes[progress.sessions_done])
+                    sampler = args.sampler if progress.reward_ready else "uniform"  # the first: uniform (reference)
                     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
                     e0, s0, e1, s1 = random_pairs([n for _, n in usable], args.segment_len, n_candidates, rng)
                     starts = np.array([s for s, _ in usable], dtype=np.int64)
                     idx0, idx1 = (torch.as_tensor((starts[e] + s)[:, None] + np.arange(args.segment_len), device=device)
                                   % buffer.capacity for e, s in ((e0, s0), (e1, s1)))
-                    features = None  # coverage (appendix): the states of both segments, concatenated
-                    if args.sampler.endswith("coverage"):
-                        features = torch.cat([buffer.obs[i].flatten(1) for i in (idx0, idx1)], 1).cpu().numpy()
-                    chosen = np.arange(size)  # uniform: random_pairs drew `size` pairs
+                    inputs0, inputs1 = (torch.cat([buffer.obs[i], buffer.actions[i]], -1) for i in (idx0, idx1))
+                    # appendix: both segments' states concatenated, for the coverage samplers
+                    features = torch.cat([buffer.obs[i].flatten(1) for i in (idx0, idx1)], 1).cpu().numpy()
+                    chosen = np.arange(size)  # uniform: random_pairs drew `size` uniform pairs
                     if sampler != "uniform":
                         with torch.no_grad():
-                            r0, r1 = (reward_model(torch.cat([buffer.obs[i], buffer.actions[i]], -1)).sum(2)
-                                      for i in (idx0, idx1))
+                            probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))[..., 0]
                         labelled = np.concatenate(preferences["features"]) if preferences["features"] else None
-                        chosen = select(sampler, size, probs=torch.sigmoid(r1 - r0)[..., 0].cpu().numpy(),
-                                        features=features, labeled_features=labelled, rng=rng)
-                    idx0, idx1 = idx0[chosen], idx1[chosen]
-                    parts = (("obs", buffer.obs), ("actions", buffer.actions), ("rewards", buffer.true_rewards[:, 0]))
-                    segments = {f"{key}{i}": part[idx].cpu().numpy() for i, idx in enumerate((idx0, idx1))
-                                for key, part in parts}
+                        chosen = select(sampler, size, probs=probs.cpu().numpy(), features=features,
+                                        labeled_features=labelled, rng=rng)
+                    segments = {f"{key}{i}": part[idx[chosen]].cpu().numpy() for i, idx in enumerate((idx0, idx1))
+                                for key, part in (("obs", buffer.obs), ("actions", buffer.actions),
+                                                  ("rewards", buffer.true_rewards[:, 0]))}
                     # Appendix, adaptive thresholds: mean true return of the last 10 training episodes (reference code)
                     teacher.set_thresholds(float(np.mean(progress.recent_returns)), args.segment_len, episode_len)
                     y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
-                    save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
-                                step=global_step, y=y, keep=keep, **segments)
+                    np.savez(data := io.BytesIO(), step=global_step, y=y, keep=keep, **segments)
+                    save_file(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
+                              data.getvalue())
                     progress.feedback_used += size
                     progress.sessions_done += 1
-                    kept = torch.as_tensor(keep, device=device)
-                    for key, idx in (("inputs0", idx0), ("inputs1", idx1)):
-                        preferences[key].append(torch.cat([buffer.obs[idx], buffer.actions[idx]], -1)[kept])
+                    progress.next_feedback_step = global_step + args.feedback_every
+                    kept = chosen[keep]
+                    preferences["inputs0"].append(inputs0[kept])
+                    preferences["inputs1"].append(inputs1[kept])
                     preferences["y"].append(torch.as_tensor(y[keep], dtype=torch.float32, device=device))
-                    if features is not None:
-                        preferences["features"].append(features[chosen][keep])
-                    n_labels = sum(len(part) for part in preferences["y"])
-                    skipped, equal = int((~keep).sum()), int((y[keep] == 0.5).sum())
-                    for name, value in (("labels", progress.feedback_used), ("skipped", skipped), ("equal", equal)):
-                        writer.add_scalar(f"feedback/{name}", value, global_step)
-                    if n_labels:
+                    preferences["features"] += [features[kept]] if args.sampler.endswith("coverage") else []
+                    skipped, equal, n_labels = (~keep).sum(), (y[keep] == 0.5).sum(), sum(map(len, preferences["y"]))
+                    for name, value in [("labels", progress.feedback_used), ("skipped", skipped), ("equal", equal)]:
+                        writer.add_scalar(f"feedback/{name}", int(value), global_step)
+                    if n_labels == 0:  # every query so far was skipped: nothing to learn from yet
+                        print(f"step {global_step}: all {size} queries skipped, the reward model stays as it is")
+                    else:
                         loss, accuracy = train_reward(reward_model, reward_optimizer, *(torch.cat(preferences[key])
                                                       for key in ("inputs0", "inputs1", "y")), args, args.reward_epochs)
                         relabel(buffer, reward_model)
-                        progress.relabels += 1
+                        progress.counts["relabels"] += 1
                         writer.add_scalar("reward/loss", loss, global_step)
                         writer.add_scalar("reward/accuracy", accuracy, global_step)
                         print(f"step {global_step}: feedback session {progress.sessions_done}: {size} queries "
                               f"({skipped} skipped, {equal} equal), reward model trained on {n_labels} labels, "
                               f"accuracy {accuracy:.3f}")
-                    else:  # every query so far was skipped: nothing to learn from yet
-                        print(f"step {global_step}: all {size} queries skipped, the reward model stays as it is")
                 reset_critic = n_labels > 0 and not progress.reward_ready
-                progress.next_feedback_step = global_step + args.feedback_every
             if reset_critic:  # PEBBLE, after the first reward update: fresh critics (not actor or temperature), then
                 # critic_reset_updates SAC updates on the relabelled buffer (reference code); not counted as overhead
-                progress.reward_ready, progress.critic_resets = True, progress.critic_resets + 1
+                progress.reward_ready, progress.counts["critic_resets"] = True, progress.counts["critic_resets"] + 1
                 critic.load_state_dict(TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).state_dict())
                 critic_target.load_state_dict(critic.state_dict())
                 critic_optimizer.state.clear()  # and fresh Adam moments
@@ -969,13 +891,10 @@ if __name__ == "__main__":
                     with progress.overhead():
                         rewards = intrinsic_reward(batch, buffer, args.knn_k)
                         intrinsic_stats.update(rewards)
-                        rewards = rewards / max(intrinsic_stats.std, 1e-8)
+                        rewards = rewards / max(math.sqrt(intrinsic_stats.var), 1e-8)
                 losses = sac_update(batch, rewards, actor, critic, critic_target, log_alpha, actor_optimizer,
                                     critic_optimizer, alpha_optimizer, args.gamma)
-                if progress.reward_ready:
-                    progress.updates_on_learned_reward += 1
-                else:
-                    progress.updates_on_knn_reward += 1
+                progress.counts["updates_on_learned_reward" if progress.reward_ready else "updates_on_knn_reward"] += 1
                 if (global_step - args.seed_steps) % args.target_update_every == 0:
                     soft_update(critic, critic_target, args.tau)
                 if global_step % 1000 == 0:
@@ -984,59 +903,53 @@ if __name__ == "__main__":
                     writer.add_scalar("charts/SPS", int(global_step / (time.time() - start_time)), global_step)
 
             if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
-                first = len(progress.eval_rows) * args.eval_episodes  # evaluation episodes are numbered over the run
-                seeds = [episode_seed(args.seed, EVAL_STREAM, first + n) for n in range(args.eval_episodes)]
                 if args.capture_video:
                     eval_env.name_prefix = f"step_{global_step}"
-                learned = reward_model if progress.reward_ready and not args.ground_truth_reward else None
-                result = evaluate(actor, learned, eval_env, seeds, device)
+                seeds = [episode_seed(args.seed, EVAL_STREAM, len(progress.eval_rows) * args.eval_episodes + j)
+                         for j in range(args.eval_episodes)]
+                judged = reward_model if progress.reward_ready and not args.ground_truth_reward else None
+                result = evaluate(actor, judged, eval_env, seeds, device)
                 if args.capture_video and eval_env.recording:  # write the video now, not at the next reset
                     eval_env.stop_recording()
-                progress.last_eval = result["episode_return"]
-                row = {"step": global_step, **result, "feedback": progress.feedback_used,
-                       "wall_time": round(time.time() - start_time, 1),
-                       "overhead_seconds": round(progress.overhead_seconds, 1)}
+                progress.eval_rows.append({"step": global_step, **result, "feedback": progress.feedback_used,
+                                           "wall_time": round(time.time() - start_time, 1),
+                                           "overhead_seconds": round(progress.overhead_seconds, 1)})
                 with open(eval_path, "a", newline="") as f:
-                    csv.DictWriter(f, eval_fields).writerow(row)
-                progress.eval_rows.append(row)
+                    csv.DictWriter(f, eval_fields).writerow(progress.eval_rows[-1])
                 for name in ("episode_return", "success_rate", "reward_correlation"):
                     writer.add_scalar(f"eval/{name}", result[name], global_step)
             if time.time() - last_print > 10 or global_step == args.total_timesteps:
-                last_print = time.time()
-                sps = global_step / (last_print - start_time)
-                print(f"step {global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA "
-                      f"{(args.total_timesteps - global_step) / sps / 60:.1f} min | last eval return "
-                      f"{progress.last_eval:.1f} | labels {progress.feedback_used}/{args.max_feedback}", flush=True)
+                last_print, left = time.time(), args.total_timesteps - global_step
+                sps, last_eval = global_step / (last_print - start_time), (progress.eval_rows or [{}])[-1]
+                print(f"step {global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA {left / sps / 60:.1f} "
+                      f"min | last eval return {last_eval.get('episode_return', math.nan):.1f} | labels "
+                      f"{progress.feedback_used}/{args.max_feedback}", flush=True)
 
-            if (args.checkpoint_every and global_step % args.checkpoint_every == 0) or stop:
-                save_start = time.perf_counter()
-                save_checkpoint(checkpoint_path, checkpoint_state())
-                print(f"step {global_step}: checkpoint saved ({os.path.getsize(checkpoint_path) / 2**20:.1f} MiB "
+            if args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop:
+                save_start, data = time.perf_counter(), io.BytesIO()
+                torch.save(checkpoint_state(), data)  # in memory first: a full disk is then a plain OSError
+                save_file(checkpoint_path, data.getvalue())
+                print(f"step {global_step}: checkpoint.pt saved ({os.path.getsize(checkpoint_path) / 2**20:.1f} MiB "
                       f"in {time.perf_counter() - save_start:.1f} s)", flush=True)
             if stop:
-                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
-                      f"continue with --resume {output_dir}", flush=True)
+                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; continue with --resume "
+                      f"{output_dir}", flush=True)
                 writer.close()
                 sys.exit(128 + stop[0])
     except FloatingPointError as error:  # a NaN or infinity in a loss or from the environment
         # Mid-step the env and the buffer have moved past the last checkpoint, which stays as it is. The state at the
         # failure (finite: the checks come before the optimizer steps) goes to a file of its own, to inspect
-        save_checkpoint(os.path.join(output_dir, "checkpoint_nonfinite.pt"), checkpoint_state())
+        torch.save(checkpoint_state(), os.path.join(output_dir, "checkpoint_nonfinite.pt"))
         last = f"its last checkpoint is intact in {checkpoint_path}" if os.path.exists(checkpoint_path) else \
             "no checkpoint was due yet"
-        fail(f"{error} at step {progress.global_step}; run stopped, {last}, "
-             f"the state at the failure is in {output_dir}/checkpoint_nonfinite.pt and the labels in "
-             f"{output_dir}/labels", code=3)
+        fail(f"{error} at step {progress.global_step}; run stopped, {last}, the state at the failure is in "
+             f"{output_dir}/checkpoint_nonfinite.pt and the labels in {output_dir}/labels", code=3)
     except OSError as error:
-        fail(f"writing to {output_dir!r} failed at step {progress.global_step} ({error.strerror or error}); "
-             "the last checkpoint there is intact", code=1)
+        fail(f"writing to {output_dir!r} failed at step {progress.global_step} ({error.strerror or error}); the last "
+             "checkpoint there is intact", code=1)
 
-    counts = {name: getattr(progress, name)
-              for name in ("updates_on_knn_reward", "updates_on_learned_reward", "relabels", "critic_resets")}
-    print(f"done: {counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
+    print(f"done: {progress.counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
           f"{progress.sessions_done} feedback sessions, {progress.feedback_used} queries; outputs in {output_dir}")
     torch.save({"actor": actor.state_dict(), "critic": critic.state_dict(), "reward_model": reward_model.state_dict()},
                os.path.join(output_dir, "final_model.pt"))
-    env.close()
-    eval_env.close()
     writer.close()

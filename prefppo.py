@@ -34,8 +34,6 @@ class Args:
     """the name of this experiment (part of the run name)"""
     seed: int = 1
     """seed of the experiment"""
-    torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
     """the GPU when torch sees one, else the CPU (--no-cuda: the CPU)"""
     track: bool = False
@@ -141,7 +139,9 @@ class Args:
     """segments come from the last N complete episodes (0 = all so far, pre-training's too: reference code)"""
 
 
-# Paper appendix, table of PrefPPO hyperparameters (docs/prefppo.md lists the values the paper leaves open).
+
+
+# Paper appendix, table of PrefPPO hyperparameters (docs/prefppo.md lists the values the paper leaves open)
 DMC_PRESET = dict(total_timesteps=4_000_000, max_feedback=1000, feedback_per_session=100, feedback_every=32_000,
                   segment_len=50, learning_rate=5e-5, num_envs=32, num_steps=500, minibatch_size=64, gae_lambda=0.92,
                   reward_epochs=100)  # reference code: re_update 100 (train_PrefPPO.py default, DMC scripts)
@@ -149,18 +149,16 @@ METAWORLD_PRESET = dict(total_timesteps=3_000_000, max_feedback=10_000, feedback
                         feedback_every=16_000, segment_len=25, learning_rate=3e-4, num_envs=8, num_steps=250,
                         minibatch_size=128, gae_lambda=0.92, reward_epochs=50)  # reference code: --re-update 50
 GYM_PRESET = dict(DMC_PRESET, learning_rate=3e-4, num_envs=8, num_steps=256, minibatch_size=64, gae_lambda=0.95)
-PRESETS = {
-    "walker-walk": DMC_PRESET,
-    "quadruped-walk": dict(DMC_PRESET, num_envs=16, minibatch_size=128, gae_lambda=0.9),
-    "button-press": METAWORLD_PRESET,
-    "sweep-into": dict(METAWORLD_PRESET, num_envs=32, minibatch_size=256),
-}
+PRESETS = {"walker-walk": DMC_PRESET, "button-press": METAWORLD_PRESET,
+           "sweep-into": dict(METAWORLD_PRESET, num_envs=32, minibatch_size=256),
+           "quadruped-walk": dict(DMC_PRESET, num_envs=16, minibatch_size=128, gae_lambda=0.9)}
+CPU_SCALE = "python prefppo.py --env-id walker-walk --total-timesteps 1000000"  # docs/results.md
 
 
 # Environments
 class DMCEnv(gym.Env):
-    """A dm_control suite task as a Gymnasium env: flat float32 observations, episodes end by truncation;
-    reset(seed=s) re-seeds the task's random state, so the episode is a function of s and the actions."""
+    """A dm_control suite task as a Gymnasium env: flat observations, episodes end by truncation; reset(seed=s)
+    re-seeds the task's random state, so an episode is a function of s and the actions."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
@@ -168,23 +166,19 @@ class DMCEnv(gym.Env):
         from dm_control import suite
 
         self.dmc, self.render_mode = suite.load(domain, task), render_mode
-        obs_dim = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values())
+        obs_dim, spec = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values()), self.dmc.action_spec()
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
-        spec = self.dmc.action_spec()
         self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32), spec.maximum.astype(np.float32))
-
-    def _flat(self, observation):
-        return np.concatenate([np.asarray(v, dtype=np.float32).ravel() for v in observation.values()])
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
             self.dmc.task.random.seed(seed)
-        return self._flat(self.dmc.reset().observation), {}
+        return np.concatenate([np.ravel(v) for v in self.dmc.reset().observation.values()]), {}
 
     def step(self, action):
         step = self.dmc.step(action)
-        terminated = step.last() and step.discount == 0
-        return self._flat(step.observation), step.reward, terminated, step.last() and not terminated, {}
+        obs = np.concatenate([np.ravel(v) for v in step.observation.values()])
+        return obs, step.reward, step.last() and step.discount == 0, step.last() and step.discount != 0, {}
 
     def render(self):
         return self.dmc.physics.render(height=240, width=320, camera_id=0)
@@ -205,7 +199,6 @@ def env_kind(env_id: str) -> str:
 
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
-
     if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
     if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
@@ -243,22 +236,26 @@ def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]
     else:
         env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
         episode_len = env.spec.max_episode_steps
-        if not isinstance(env.action_space, gym.spaces.Box) or not isinstance(env.observation_space, gym.spaces.Box):
-            raise ValueError(f"--env-id {env_id!r} must have Box observation and action spaces")
-        if episode_len is None:
-            raise ValueError(f"--env-id {env_id!r} has no time limit (max_episode_steps), needed for the thresholds")
+        if not (isinstance(env.action_space, gym.spaces.Box) and isinstance(env.observation_space, gym.spaces.Box)
+                and episode_len):
+            raise ValueError(f"--env-id {env_id!r} needs Box observation and action spaces and a time limit")
     bound = np.ones(env.action_space.shape, np.float32)  # float32 bounds: no "precision lowered" warnings
     env = gym.wrappers.RescaleAction(env, -bound, bound)
     space = gym.spaces.Box(-np.inf, np.inf, env.observation_space.shape, np.float32)
     return gym.wrappers.TransformObservation(env, lambda obs: np.asarray(obs, np.float32), space), episode_len
 
 
-EVAL_STREAM = 1_000_000  # the evaluation env's stream of episode seeds; training env i is stream i
+TRAIN_STREAM, EVAL_STREAM = 0, 1  # the streams of episode seeds of the training and the evaluation envs
+
+
+def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
+    """Independent streams from one run seed: query sampler, teacher, random actions of the seed steps (PEBBLE)."""
+    return np.random.SeedSequence(seed).spawn(3)
 
 
 def episode_seed(run_seed: int, stream: int, episode: int) -> int:
-    """The reset seed of episode `episode` of env `stream`: a 32-bit draw of SeedSequence([run_seed, stream,
-    episode]), so runs with different seeds share no episode (up to chance)."""
+    """The reset seed of episode `episode` of a stream: a 32-bit draw of SeedSequence([run_seed, stream, episode]),
+    so any episode can be played again alone, and runs with different seeds share no episode (up to chance)."""
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
 
 
@@ -337,7 +334,8 @@ def reset_value_head(critic: nn.Sequential):
 
 
 class RewardEnsemble(nn.Module):
-    """Appendix "Reward model": members of 3 x 256 LeakyReLU layers with a tanh-bounded output."""
+    """Appendix "Reward model": members of 3 x 256 LeakyReLU layers with a tanh-bounded output; (..., obs+action)
+    -> each member's reward (members, ..., 1)."""
 
     def __init__(self, obs_dim, action_dim, size):
         super().__init__()
@@ -345,11 +343,10 @@ class RewardEnsemble(nn.Module):
             nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh()) for _ in range(size))
 
     def forward(self, obs_action):
-        """(..., obs+action) -> per-member rewards (members, ..., 1)."""
         return torch.stack([member(obs_action) for member in self.members])
 
 
-# Algorithm: the math a reader must trust
+# Algorithm: the math a reader must trust (each unit-tested), the kNN reward, reward learning
 def clip_range(clip_coef: float, global_step: int, total_timesteps: int) -> float:
     """The clip range of the update after the rollout that reached global_step (reference code: SB3's
     linear_schedule of progress_remaining = 1 - steps done / total): clip_coef at the start, 0 at the end."""
@@ -369,6 +366,18 @@ def ppo_value_loss(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
     return F.mse_loss(values, returns)
 
 
+def optimize(optimizer, loss: torch.Tensor, name: str, max_grad_norm: float | None = None):
+    """One gradient step, the gradients clipped to max_grad_norm; a non-finite loss stops the run before it
+    (FloatingPointError): the networks stay finite."""
+    if not torch.isfinite(loss).all():
+        raise FloatingPointError(f"non-finite {name} ({loss.detach().flatten()[0].item()})")
+    optimizer.zero_grad()
+    loss.backward()
+    if max_grad_norm is not None:
+        nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]], max_grad_norm)
+    optimizer.step()
+
+
 def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
     """Generalised advantage estimation over a rollout of shape (T, N). next_values[t] is V of the state after
     step t; a done step (termination or truncation) cuts the recursion. A truncated step carries
@@ -381,18 +390,10 @@ def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
     return advantages, advantages + values
 
 
-def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
-    """Distance from each state to its k-th nearest neighbour in `reference`, not counting the state itself (its
-    zero distance): the (k+1)-th smallest. Eq. (8) without the log (docs). Blocks of chunk x chunk distances
-    keep the memory bounded; the k+1 nearest are merged per block."""
-    kth = []
-    for i in range(0, len(states), chunk):
-        nearest = torch.empty(len(states[i : i + chunk]), 0, device=states.device)
-        for j in range(0, len(reference), chunk):
-            candidates = torch.cat([nearest, torch.cdist(states[i : i + chunk], reference[j : j + chunk])], dim=1)
-            nearest = candidates.topk(min(k + 1, candidates.shape[1]), dim=1, largest=False).values
-        kth.append(nearest[:, -1:])
-    return torch.cat(kth)
+def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
+    """Eq. (8) without the log (docs): distance to the k-th nearest neighbour in `reference`, not counting the
+    state itself (its zero distance): the (k+1)-th smallest. Memory: states x reference distances."""
+    return torch.cdist(states, reference).kthvalue(min(k + 1, len(reference)), dim=1, keepdim=True).values
 
 
 class RunningMeanStd:
@@ -429,38 +430,26 @@ class KnnStateEntropy:
         return distance / math.sqrt(self.stats.var[0] + 1e-8)
 
 
-def numpy_seeds(seed: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
-    """Independent streams for the query sampler and the teacher from one run seed (one generator each,
-    seeded alike, would draw the same numbers)."""
-    sampler_seed, teacher_seed = np.random.SeedSequence(seed).spawn(2)
-    return sampler_seed, teacher_seed
-
-
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
-    """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against soft targets
-    (1 - y, y); equal labels (y = 0.5) are the uniform target. segment_returns: (batch, 2)."""
+    """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against (1 - y, y), (batch, 2)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
     log_probs = F.log_softmax(segment_returns, dim=-1)
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
 def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[int, int]:
-    """(correct, counted) over strict labels only: an equal label has no right side to pick, so it is
-    not counted (the reference code counted it as 'first preferred', biasing the 97% early stop)."""
+    """(correct, counted) over strict labels: an equal label has no right side (the reference code counted it)."""
     strict = y != 0.5
-    predicted_second = segment_returns[:, 1] > segment_returns[:, 0]
-    return int((predicted_second == (y > 0.5))[strict].sum()), int(strict.sum())
+    return int(((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5))[strict].sum()), int(strict.sum())
 
 
 def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs) -> tuple[float, float]:
-    """Reward learning (Algorithm 3, the gradient steps on L^Reward): up to max_epochs passes over the
-    preference dataset, each member with its own shuffle; stop once the training accuracy passes 97%."""
-    n, accuracy, loss_value = len(y), float("nan"), float("nan")
+    """Algorithm 3, reward learning: up to max_epochs passes over D, one shuffle per member, until 97% accuracy."""
     for _ in range(max_epochs):
-        orders = [torch.randperm(n, device=y.device) for _ in reward_model.members]
+        orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
         correct = counted = 0
         losses = []
-        for start in range(0, n, args.reward_batch_size):
+        for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
                 idx = order[start : start + args.reward_batch_size]
@@ -468,16 +457,12 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
                 loss = loss + preference_loss(returns, y[idx], args.label_smoothing)
                 c, m = preference_accuracy(returns.detach(), y[idx])
                 correct, counted = correct + c, counted + m
-            check_finite("reward-model loss", loss)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
+            optimize(optimizer, loss, "reward-model loss")
             losses.append(loss.item() / len(reward_model.members))
-        loss_value = float(np.mean(losses))
         accuracy = correct / counted if counted else float("nan")
         if accuracy > 0.97:
             break
-    return loss_value, accuracy
+    return float(np.mean(losses)), accuracy
 
 
 def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes, rollout: int) -> int:
@@ -491,6 +476,11 @@ def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: in
 
 
 # Plumbing: command line, files, evaluation, the loop's counters
+def fail(message: str, code: int = 2):
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
 def parse_args() -> Args:
     """tyro's command line (--help lists every flag and choice); its error box becomes one `error: ...` line."""
     captured = io.StringIO()
@@ -498,10 +488,10 @@ def parse_args() -> Args:
         with contextlib.redirect_stderr(captured):
             args = tyro.cli(Args)
     except SystemExit as exit_:
-        if not exit_.code:
-            raise
-        lines = [line.strip("│ ") for line in captured.getvalue().splitlines()[1:]]  # the box's text, no frame
-        fail(" ".join(itertools.takewhile(lambda line: not line.startswith("─"), lines)) or captured.getvalue())
+        if exit_.code:  # not --help
+            lines = [line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:]]  # the box's text
+            fail(" ".join(line for line in itertools.takewhile(lambda x: x[:1] != "─", lines) if line))
+        raise
     sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
     return args
 
@@ -519,16 +509,14 @@ def resolve(args: Args) -> Args:
                              "checkpoint has to start again)")
         with open(os.path.join(args.resume, "config.json")) as f:
             saved, names = json.load(f), [f.name for f in fields(Args)]
-        missing = [name for name in names if name not in saved]
-        if missing:
+        if missing := [name for name in names if name not in saved]:
             raise ValueError(f"--resume {args.resume!r}: its config.json has no {', '.join(missing)} (written by an "
-                             "older prefppo.py, whose run this one cannot continue); start a new run")
+                             f"older {os.path.basename(__file__)}, whose run this one cannot continue)")
         for name in (name for name in names if name not in RESUME_MAY_CHANGE):
             if getattr(args, name) not in (getattr(Args(), name), saved[name]):
-                raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has {saved[name]!r},"
-                                 f" got {getattr(args, name)!r}); start a new run for another configuration")
-        changed = {name: getattr(args, name) for name in RESUME_MAY_CHANGE}
-        return Args(**{name: saved[name] for name in names} | changed | {"output_dir": args.resume})
+                raise ValueError(f"--{name.replace('_', '-')} cannot change when resuming (the run has "
+                                 f"{saved[name]!r}, got {getattr(args, name)!r})")
+        return Args(**saved | {name: getattr(args, name) for name in RESUME_MAY_CHANGE} | {"output_dir": args.resume})
     family = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}[env_kind(args.env_id)]
     teacher = make_teacher(args.teacher)
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
@@ -538,60 +526,30 @@ def resolve(args: Args) -> Args:
     return args
 
 
-def check_args(args: Args, episode_len: int) -> str | None:
-    """The first problem with the configuration as one line, or None (tyro checks types and choices)."""
-    rollout, eps = args.num_envs * args.num_steps, (args.teacher_eps_mistake, args.teacher_eps_skip,
-                                                     args.teacher_eps_equal)
-    checks = [
-        (args.seed >= 0, f"--seed must be >= 0, got {args.seed}"),
-        (args.teacher_beta >= 0, f"--teacher-beta must be >= 0 (inf = rational), got {args.teacher_beta}"),
-        (0 < args.teacher_gamma <= 1, f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}"),
-        (all(0 <= e <= 1 for e in eps), "--teacher-eps-mistake, --teacher-eps-skip and --teacher-eps-equal: [0, 1]"),
-        (args.max_feedback >= 1, f"--max-feedback must be >= 1, got {args.max_feedback}"),
-        (1 <= args.feedback_per_session <= args.max_feedback,
-         f"--feedback-per-session must be in [1, --max-feedback={args.max_feedback}], got {args.feedback_per_session}"),
-        (args.feedback_every >= 1, f"--feedback-every must be >= 1, got {args.feedback_every}"),
-        (1 <= args.segment_len <= episode_len,
-         f"--segment-len must be in [1, {episode_len}] (the episode length of {args.env_id}), got {args.segment_len}"),
-        (min(args.num_envs, args.num_steps, args.update_epochs, args.unsup_update_epochs, args.sde_freq) >= 1,
-         "--num-envs, --num-steps, --update-epochs, --unsup-update-epochs and --sde-freq must be >= 1"),
-        (1 <= args.minibatch_size <= rollout,
-         f"--minibatch-size must be in [1, --num-envs x --num-steps = {rollout}], got {args.minibatch_size}"),
-        (0 <= args.unsup_steps < args.total_timesteps and args.total_timesteps >= rollout, f"--total-timesteps "
-         f"({args.total_timesteps}) must exceed --unsup-steps ({args.unsup_steps} >= 0) and one rollout ({rollout})"),
-        (min(args.hidden_dim, args.num_layers, args.reward_batch_size, args.reward_ensemble_size, args.eval_every,
-             args.eval_episodes, args.knn_k, args.candidate_multiplier, args.reward_epochs) >= 1,
-         "--hidden-dim, --num-layers, --reward-batch-size, --reward-ensemble-size, --eval-every, --eval-episodes, "
-         "--knn-k, --candidate-multiplier and --reward-epochs must be >= 1"),
-        (args.learning_rate > 0 and args.reward_lr > 0, "--learning-rate and --reward-lr must be > 0"),
-        (0 < args.gamma <= 1 and 0 <= args.gae_lambda <= 1, "--gamma must be in (0, 1] and --gae-lambda in [0, 1]"),
-        (args.clip_coef > 0 and args.ent_coef >= 0 and args.vf_coef >= 0 and args.max_grad_norm > 0,
-         "--clip-coef and --max-grad-norm must be > 0, --ent-coef and --vf-coef >= 0"),
-        (0 <= args.label_smoothing < 1, f"--label-smoothing must be in [0, 1), got {args.label_smoothing}"),
-        (min(args.query_recent_episodes, args.checkpoint_every) >= 0,
-         "--query-recent-episodes and --checkpoint-every must be >= 0"),
-    ]
-    return next((message for ok, message in checks if not ok), None)
-
-
-def fail(message: str, code: int = 2):
-    print(f"error: {message}", file=sys.stderr)
-    sys.exit(code)
-
-
-class NonFiniteError(Exception):
-    """A NaN or infinity in a loss or in what the environment returned; the message names it."""
-
-
-def check_finite(name: str, value: torch.Tensor):
-    if not torch.isfinite(value).all():
-        raise NonFiniteError(f"non-finite {name} ({value.detach().flatten()[0].item()})")
-
-
-def save_labels(path: str, **arrays):
-    """One session's queries and answers (labels/session_NNNN.npz): written, then renamed into place."""
-    np.savez(f"{path}.tmp.npz", **arrays)
-    os.replace(f"{path}.tmp.npz", path)
+def check_args(args: Args, episode_len: int):
+    """ValueError naming the first number out of its range (tyro checks types and choices)."""
+    a, rollout = args, args.num_envs * args.num_steps
+    rules = [("seed", a.seed >= 0, ">= 0"), ("teacher_beta", a.teacher_beta >= 0, ">= 0 (inf = rational)"),
+             *[(n, 0 < getattr(a, n) <= 1, "in (0, 1]") for n in ("teacher_gamma", "gamma")],
+             *[(n, 0 <= getattr(a, n) <= 1, "in [0, 1]") for n in ("teacher_eps_mistake", "teacher_eps_skip",
+                                                                   "teacher_eps_equal", "gae_lambda")],
+             *[(n, getattr(a, n) >= 1, ">= 1") for n in (
+                 "max_feedback", "feedback_every", "hidden_dim", "num_layers", "num_envs", "num_steps",
+                 "update_epochs", "unsup_update_epochs", "sde_freq", "reward_batch_size", "reward_ensemble_size",
+                 "eval_every", "eval_episodes", "knn_k", "candidate_multiplier", "reward_epochs")],
+             *[(n, getattr(a, n) >= 0, ">= 0") for n in ("unsup_steps", "ent_coef", "vf_coef", "query_recent_episodes",
+                                                         "checkpoint_every")],
+             *[(n, getattr(a, n) > 0, "> 0") for n in ("learning_rate", "reward_lr", "clip_coef", "max_grad_norm")],
+             ("label_smoothing", 0 <= a.label_smoothing < 1, "in [0, 1)"),
+             ("feedback_per_session", 1 <= a.feedback_per_session <= a.max_feedback,
+              f"in [1, --max-feedback={a.max_feedback}]"),
+             ("segment_len", 1 <= a.segment_len <= episode_len, f"in [1, {episode_len}] (the episode length)"),
+             ("minibatch_size", 1 <= a.minibatch_size <= rollout, f"in [1, --num-envs x --num-steps = {rollout}]"),
+             ("total_timesteps", a.total_timesteps > a.unsup_steps and a.total_timesteps >= rollout,
+              f"> --unsup-steps ({a.unsup_steps}) and >= one rollout ({rollout})")]
+    for name, ok, rule in rules:
+        if not ok:
+            raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {getattr(a, name)}")
 
 
 def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> dict:
@@ -599,36 +557,28 @@ def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> d
     inputs0, inputs1 (obs and action per step), y and the coverage features."""
     files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
                                                       or glob.glob(os.path.join(path, "session_*.npz")))
-    if not files:
-        raise ValueError(f"--labels-from {path!r}: no labels found (expected session_*.npz files)")
     sessions = [dict(np.load(file)) for file in files]
-    for file, s in zip(files, sessions):
-        if s["obs0"].shape[1:] != (segment_len, obs_dim) or s["actions0"].shape[1:] != (segment_len, action_dim):
-            raise ValueError(f"--labels-from {file!r}: segments of shape {s['obs0'].shape[1:]} and actions "
-                             f"{s['actions0'].shape[1:]} do not fit this run ({segment_len}, {obs_dim}) and "
-                             f"({segment_len}, {action_dim})")
+    if not sessions or any(s["obs0"].shape[1:] + s["actions0"].shape[2:] != (segment_len, obs_dim, action_dim)
+                           for s in sessions):
+        raise ValueError(f"--labels-from {path!r}: no session_*.npz files, or segments that do not fit this run "
+                         f"({segment_len} steps of {obs_dim} observations and {action_dim} actions)")
     kept = {k: np.concatenate([s[k][s["keep"]] for s in sessions]) for k in ("obs0", "actions0", "obs1", "actions1")}
-    kept["y"] = np.concatenate([s["y"][s["keep"]] for s in sessions])
-    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": kept["y"].astype(np.float32),
+    y = np.concatenate([s["y"][s["keep"]] for s in sessions]).astype(np.float32)
+    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": y,
             "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1),
-            "features": np.concatenate([kept["obs0"].reshape(len(kept["y"]), -1),
-                                        kept["obs1"].reshape(len(kept["y"]), -1)], axis=1)}
+            "features": np.concatenate([kept["obs0"].reshape(len(y), -1), kept["obs1"].reshape(len(y), -1)], 1)}
 
 
-def save_checkpoint(path: str, state: dict):
-    """Write to a temporary file, flush it to disk, then rename: a kill during the write leaves the previous
-    file intact. Serialised in memory first, so that a full disk is a plain OSError."""
-    tmp, serialised = f"{path}.tmp", io.BytesIO()
-    torch.save(state, serialised)
+def save_file(path: str, data: bytes):
+    """Written to a temporary file, flushed to disk, then renamed: a kill during the write leaves the old file."""
     try:
-        with open(tmp, "wb") as f:
-            f.write(serialised.getbuffer())
-            f.flush()
+        with open(f"{path}.tmp", "wb") as f:
+            f.write(data)
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(f"{path}.tmp", path)
     finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        if os.path.exists(f"{path}.tmp"):
+            os.remove(f"{path}.tmp")
 
 
 def evaluate(actor, obs_stats, reward_model, env, seeds: list[int], device) -> dict:
@@ -655,8 +605,8 @@ def evaluate(actor, obs_stats, reward_model, env, seeds: list[int], device) -> d
 
 
 def projected_cpu_hours(args: Args, env: gym.Env, obs_dim: int) -> float:
-    """Hours of the run on this CPU, from a few timed environment steps and PPO minibatch updates of throwaway
-    networks of the actor's size on random data, timed before the run seeds torch (its state is untouched)."""
+    """The run on this CPU, from 20 timed environment steps and 5 PPO minibatch updates of throwaway networks of
+    the actor's size on random data, timed before the run seeds torch (its state is untouched)."""
     net, batch = mlp(obs_dim, 1, args.hidden_dim, args.num_layers), torch.randn(args.minibatch_size, obs_dim)
     env.reset(seed=0)
     start = time.perf_counter()
@@ -680,64 +630,64 @@ class Progress:
     sessions_done: int = 0
     feedback_used: int = 0
     next_feedback_step: int = 0
-    evaluations: int = 0
     next_checkpoint_step: int = 0
+    eval_rows: list = field(default_factory=list)  # eval.csv
     reward_ready: bool = False  # PPO trains on r_hat (or the true reward), no longer on the kNN reward
-    last_eval: float = float("nan")
-    overhead_seconds: float = 0.0  # in the preference-learning parts: kNN reward, queries, reward learning
+    overhead_seconds: float = 0.0  # PrefPPO's own parts: kNN reward, queries, reward learning, r_hat
     wall_time: float = 0.0
-    updates_on_knn_reward: int = 0
-    updates_on_learned_reward: int = 0
-    value_resets: int = 0
-    ppo_epochs: int = 0
+    counts: dict = field(default_factory=lambda: dict.fromkeys(  # how often each phase ran, for the last line
+        ("updates_on_knn_reward", "updates_on_learned_reward", "value_resets", "ppo_epochs"), 0))
+
+    @contextlib.contextmanager
+    def overhead(self):
+        start = time.perf_counter()
+        yield
+        self.overhead_seconds += time.perf_counter() - start
 
 
 if __name__ == "__main__":
     args = parse_args()
     try:  # every user error: one line, before any work
         args = resolve(args)
-        env, episode_len = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
+        env, episode_len = make_env(args.env_id)
+        eval_env, _ = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-        problem = check_args(args, episode_len)
-        if not problem and args.labels_from and not args.resume:
-            imported_labels = load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
+        check_args(args, episode_len)
+        imported = None
+        if args.labels_from and not args.resume:
+            imported = load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
     except (ValueError, OSError, KeyError) as error:
         fail(str(error))
-    if problem:
-        fail(problem)
     if args.capture_video:  # render one frame now rather than fail at the first evaluation
         try:
             import moviepy  # noqa: F401
 
             with warnings.catch_warnings(action="ignore"):  # GLFW warns before it fails without a display
-                env.reset(seed=0)
-                env.render()
+                eval_env.reset(seed=0)
+                eval_env.render()
         except Exception as error:
             print(f"error: --capture-video cannot render ({type(error).__name__}: {(str(error) or '-').splitlines()[0]}"
                   "); it needs moviepy and, without a display, MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU)",
                   file=sys.stderr, flush=True)
             os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
     run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
-    output_dir = args.output_dir or os.path.join("runs", run_name)
+    output_dir, config = args.output_dir or os.path.join("runs", run_name), asdict(args)
     if not args.resume and os.path.isdir(output_dir) and os.listdir(output_dir):
         fail(f"--output-dir {output_dir!r} already holds a run; continue it with --resume {output_dir} or choose "
              "another directory")
-    config = asdict(args)
     try:
         os.makedirs(os.path.join(output_dir, "labels"), exist_ok=True)
         if not args.resume:
-            with open(os.path.join(output_dir, "config.json"), "w") as f:
-                json.dump(config, f, indent=2)
+            save_file(os.path.join(output_dir, "config.json"), json.dumps(config, indent=2).encode())
     except OSError as error:
         fail(f"cannot write to --output-dir {output_dir!r}: {error.strerror}")
     print("configuration:\n" + "\n".join(f"  {key}: {value}" for key, value in config.items()))
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
     print(f"device: {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu'}"
-          f"{' (torch sees no GPU)' if args.cuda and device.type == 'cpu' else ''}", flush=True)
+          + ("" if device.type == "cuda" else " (torch sees no GPU)" if args.cuda else " (--no-cuda)"), flush=True)
     if device.type == "cpu" and args.total_timesteps > 1_000_000:  # beyond the CPU scale of docs/results.md
-        print(f"note: this run needs about {projected_cpu_hours(args, env, obs_dim):.0f} h on this CPU (projected); "
-              "the CPU scale of docs/results.md is python prefppo.py --env-id walker-walk --total-timesteps 1000000",
-              flush=True)
+        print(f"note: this run needs about {projected_cpu_hours(args, env, obs_dim):.0f} h on this CPU "
+              f"(projected); use a GPU, or the CPU scale of docs/results.md: {CPU_SCALE}", flush=True)
 
     from torch.utils.tensorboard import SummaryWriter
 
@@ -745,33 +695,27 @@ if __name__ == "__main__":
         import wandb
 
         wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=config, name=run_name, save_code=True)
-    checkpoint = None
-    if args.resume:
-        checkpoint = torch.load(os.path.join(output_dir, "checkpoint.pt"), map_location="cpu", weights_only=False)
-        print(f"resuming from the checkpoint at step {checkpoint['progress']['global_step']}")
+    checkpoint_path = os.path.join(output_dir, "checkpoint.pt")
+    checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False) if args.resume else None
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
-    # Seeding: numpy (query sampler and teacher, independent streams), torch (networks, actions), every reset
-    # (episode_seed): an env is a function of its episode's seed and actions, so none of its state is saved
-    sampler_seed, teacher_seed = numpy_seeds(args.seed)
+    # Seeding: numpy (query sampler and teacher: independent streams), torch (networks, actions, minibatches),
+    # every reset (episode_seed): an env is a function of its episode's seed and actions
+    sampler_seed, teacher_seed, _ = numpy_seeds(args.seed)
     rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
-    # MuJoCo's float64 states cast to float32 give denormal numbers (tiny velocities), which make
-    # CPU matrix products ~10x slower; flushing them to zero changes nothing measurable
-    torch.set_flush_denormal(True)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    envs, eval_env = [make_env(args.env_id)[0] for _ in range(args.num_envs)], env
-    if args.capture_video:  # the first episode of each evaluation: videos/step_N-episode-M.mp4
-        eval_env = gym.wrappers.RecordVideo(env, os.path.join(output_dir, "videos"),
-                                           episode_trigger=lambda episode: episode % args.eval_episodes == 0)
+    torch.set_flush_denormal(True)  # MuJoCo's tiny float32 velocities are denormals, ~10x slower on a CPU
+    envs = [env] + [make_env(args.env_id)[0] for _ in range(args.num_envs - 1)]
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
-    actor_optimizer = torch.optim.Adam(actor.parameters(), lr=args.learning_rate, eps=1e-5)
-    critic_optimizer = torch.optim.Adam(critic.parameters(), lr=args.learning_rate, eps=1e-5)
-    obs_stats, knn_reward = RunningMeanStd(obs_dim), KnnStateEntropy(obs_dim, args.knn_k, device)
+    # one Adam over both networks, as SB3's policy (Adam works per parameter: the same as one for each)
+    optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
+    obs_stats, knn_reward = RunningMeanStd(obs_dim), KnnStateEntropy(obs_dim, args.knn_k, device)
+    learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "optimizer": optimizer,
+                "reward_optimizer": reward_optimizer}
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
@@ -780,23 +724,21 @@ if __name__ == "__main__":
     if spent < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
               f"steps (sessions from step {args.unsup_steps}, every {args.feedback_every} steps, at rollout ends)")
-    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset, per session
-    if args.labels_from and not args.resume:  # earlier labels: free, not counted in this run's budget
-        for key, value in imported_labels.items():
+    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset D, per session
+    if imported:  # earlier labels: free, not counted in this run's budget
+        for key, value in imported.items():
             preferences[key].append(torch.as_tensor(value, device=device) if key != "features" else value)
-        print(f"--labels-from: {len(imported_labels['y'])} labels from {args.labels_from}")
+        print(f"--labels-from: {len(imported['y'])} labels from {args.labels_from}")
     # The complete episodes that segments come from, raw (obs, actions, true rewards): the last
     # query_recent_episodes, or all (reference code: add_data_batch never trims; 4M walker steps: 0.5 GB)
     episodes = deque(maxlen=args.query_recent_episodes or None)
     current = [([], [], []) for _ in range(args.num_envs)]  # each env's running episode
     recent_returns = deque(maxlen=100)  # of training episodes: the teacher's adaptive thresholds
-    eval_rows = []  # eval.csv
     progress = Progress(episodes=[0] * args.num_envs, next_feedback_step=args.unsup_steps,
                         next_checkpoint_step=args.checkpoint_every)
-    learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "actor_optimizer": actor_optimizer,
-                "critic_optimizer": critic_optimizer, "reward_optimizer": reward_optimizer}
     if checkpoint:  # --resume: every part back, key by key
         progress = Progress(**checkpoint["progress"])
+        print(f"resuming from the checkpoint at step {progress.global_step}")
         for name, part in learners.items():
             part.load_state_dict(checkpoint[name])
         vars(obs_stats).update(checkpoint["obs_stats"])
@@ -804,34 +746,34 @@ if __name__ == "__main__":
         vars(knn_reward.stats).update(checkpoint["knn_stats"])
         preferences = {key: [v.to(device) if torch.is_tensor(v) else v for v in values]
                        for key, values in checkpoint["preferences"].items()}
-        teacher, rng = checkpoint["teacher"], checkpoint["rng"]
+        teacher, rng, current = checkpoint["teacher"], checkpoint["rng"], checkpoint["current"]
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
         episodes.extend(checkpoint["episodes"])
         recent_returns.extend(checkpoint["recent_returns"])
-        current, eval_rows = checkpoint["current"], checkpoint["eval_rows"]
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {output_dir!r} has already finished ({progress.global_step} steps)")
-        later_sessions = sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]
-        if later_sessions:  # asked after the checkpoint: kept aside, the resumed run asks these sessions again
-            aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
-            os.makedirs(aside, exist_ok=True)
-            for path in later_sessions:
-                shutil.move(path, aside)
-    eval_path = os.path.join(output_dir, "eval.csv")
-    eval_fields = ["step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
-                   "wall_time", "overhead_seconds"]
+        aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
+        for path in sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]:
+            os.makedirs(aside, exist_ok=True)  # asked after the checkpoint: kept aside, the run asks them again
+            shutil.move(path, aside)
+    eval_path, eval_fields = os.path.join(output_dir, "eval.csv"), ["step", "episode_return", "episode_return_std",
+                                                                    "success_rate", "feedback", "reward_correlation",
+                                                                    "wall_time", "overhead_seconds"]
     with open(f"{eval_path}.tmp", "w", newline="") as f:  # rows logged after the checkpoint are dropped
         csv.DictWriter(f, eval_fields).writeheader()
-        csv.DictWriter(f, eval_fields).writerows(eval_rows)
+        csv.DictWriter(f, eval_fields).writerows(progress.eval_rows)
     os.replace(f"{eval_path}.tmp", eval_path)
     # Each env at the start of its running episode (that episode's seed), then that episode's actions so far again:
     # MuJoCo is deterministic, so a resumed env is exactly where it was (a new run has no actions to replay)
-    raw_obs = np.stack([e.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0] for i, e in enumerate(envs)])
+    raw_obs = np.stack([e.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes[i] * args.num_envs + i))[0]
+                        for i, e in enumerate(envs)])  # episode j of env i: number j * num_envs + i of the stream
     for i, action in ((i, action) for i in range(args.num_envs) for action in current[i][1]):
         raw_obs[i] = envs[i].step(action)[0]
-
+    if args.capture_video:  # the first episode of each evaluation: videos/step_N-episode-M.mp4
+        eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(output_dir, "videos"),
+                                            episode_trigger=lambda episode: episode % args.eval_episodes == 0)
     rollout_shape = (args.num_steps, args.num_envs)
     raw_obs_buf, obs_buf = (torch.zeros(*rollout_shape, obs_dim, device=device) for _ in range(2))
     actions_buf, env_actions_buf = (torch.zeros(*rollout_shape, action_dim, device=device) for _ in range(2))
@@ -843,15 +785,14 @@ if __name__ == "__main__":
     start_time = last_print = time.time() - progress.wall_time
 
     def checkpoint_state() -> dict:
-        """Everything the run needs to go on exactly after a rollout, but the envs (each is reset with its episode's
-        seed and replays `current`) and gSDE's matrices (each rollout draws new ones)."""
+        """Everything the run needs to go on exactly after this rollout, but the envs (each reset with its episode's
+        seed, then replaying `current`) and gSDE's matrices (each rollout draws new ones)."""
         return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
                 **{name: part.state_dict() for name, part in learners.items()}, "obs_stats": vars(obs_stats),
                 "knn_states": knn_reward.states.cpu(), "knn_stats": vars(knn_reward.stats), "preferences": preferences,
                 "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
                 "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None,
-                "episodes": list(episodes), "current": current, "recent_returns": list(recent_returns),
-                "eval_rows": eval_rows}
+                "episodes": list(episodes), "current": current, "recent_returns": list(recent_returns)}
 
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (pre-training) for the first unsup_steps
     try:
@@ -886,9 +827,10 @@ if __name__ == "__main__":
                 # Appendix, adaptive thresholds: mean true return of the last 100 training episodes (reference code)
                 teacher.set_thresholds(float(np.mean(recent_returns)), args.segment_len, episode_len)
                 y, keep = teacher.label(true0, true1)
-                save_labels(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"), step=step,
-                            obs0=obs0, actions0=act0, obs1=obs1, actions1=act1, rewards0=true0, rewards1=true1, y=y,
-                            keep=keep)
+                np.savez(data := io.BytesIO(), step=step, obs0=obs0, actions0=act0, obs1=obs1, actions1=act1,
+                         rewards0=true0, rewards1=true1, y=y, keep=keep)
+                save_file(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
+                          data.getvalue())
                 progress.feedback_used += size
                 progress.sessions_done += 1
                 progress.next_feedback_step = step + args.feedback_every
@@ -914,18 +856,17 @@ if __name__ == "__main__":
                           f"skipped, {(y[keep] == 0.5).sum()} equal), reward model trained on {n_labels} labels, "
                           f"accuracy {accuracy:.3f}")
                 progress.overhead_seconds += time.perf_counter() - session_start
-            if progress.reward_ready and progress.value_resets == 0:  # the end of pre-training: a new value head
-                reset_value_head(critic)
-                progress.value_resets += 1
+            if progress.reward_ready and progress.counts["value_resets"] == 0:  # the end of pre-training: a new value
+                reset_value_head(critic)  # head
+                progress.counts["value_resets"] += 1
 
             # Rollout of num_steps in every env; an env whose episode ends is reset by us with its next episode's seed
             for t in range(args.num_steps):
                 obs_stats.update(raw_obs)
                 obs = torch.as_tensor(obs_stats.normalize(raw_obs), device=device)
                 if not progress.reward_ready:  # pre-training: r_int(s_t) of Algorithm 2
-                    knn_start = time.perf_counter()
-                    intrinsic_buf[t] = knn_reward(torch.as_tensor(raw_obs, device=device))
-                    progress.overhead_seconds += time.perf_counter() - knn_start
+                    with progress.overhead():
+                        intrinsic_buf[t] = knn_reward(torch.as_tensor(raw_obs, device=device))
                 with torch.no_grad():
                     action, logprobs_buf[t] = actor.sample(obs, t, args.sde_freq)
                     values_buf[t] = critic(obs)[:, 0]
@@ -935,8 +876,8 @@ if __name__ == "__main__":
                 for i, train_env in enumerate(envs):
                     final_obs[i], true_reward[i], terminated[i], truncated[i], _ = train_env.step(env_action_np[i])
                     if not (np.isfinite(true_reward[i]) and np.isfinite(final_obs[i]).all()):
-                        raise NonFiniteError(f"non-finite reward ({true_reward[i]}) or observation from the "
-                                             "environment")
+                        raise FloatingPointError(f"non-finite reward ({true_reward[i]}) or observation from the "
+                                                 "environment")
                     for part, value in zip(current[i], (raw_obs[i], env_action_np[i], true_reward[i])):
                         part.append(value)
                     next_raw_obs[i] = final_obs[i]
@@ -945,7 +886,8 @@ if __name__ == "__main__":
                         recent_returns.append(float(sum(current[i][2])))
                         writer.add_scalar("charts/episodic_return", recent_returns[-1], step + t * args.num_envs)
                         current[i], progress.episodes[i] = ([], [], []), progress.episodes[i] + 1
-                        next_raw_obs[i] = train_env.reset(seed=episode_seed(args.seed, i, progress.episodes[i]))[0]
+                        seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes[i] * args.num_envs + i)
+                        next_raw_obs[i] = train_env.reset(seed=seed)[0]
                 raw_obs_buf[t], obs_buf[t], actions_buf[t] = torch.as_tensor(raw_obs), obs, action
                 env_actions_buf[t], true_rewards_buf[t] = env_action, torch.as_tensor(true_reward)
                 dones_buf[t] = torch.as_tensor(terminated | truncated)
@@ -957,16 +899,11 @@ if __name__ == "__main__":
             progress.global_step += rollout
 
             # The reward PPO maximises: kNN state entropy (pre-training), r_hat (Algorithm 3) or the true reward
-            if not progress.reward_ready:
-                rewards, progress.updates_on_knn_reward = intrinsic_buf, progress.updates_on_knn_reward + 1
-            elif args.ground_truth_reward:
-                rewards, progress.updates_on_learned_reward = true_rewards_buf, progress.updates_on_learned_reward + 1
-            else:
-                inference_start = time.perf_counter()
-                with torch.no_grad():  # r_hat(s, a): the ensemble mean
+            progress.counts["updates_on_learned_reward" if progress.reward_ready else "updates_on_knn_reward"] += 1
+            rewards = true_rewards_buf if progress.reward_ready else intrinsic_buf
+            if progress.reward_ready and not args.ground_truth_reward:
+                with progress.overhead(), torch.no_grad():  # r_hat(s, a): the ensemble mean
                     rewards = reward_model(torch.cat([raw_obs_buf, env_actions_buf], dim=-1)).mean(0)[..., 0]
-                progress.overhead_seconds += time.perf_counter() - inference_start
-                progress.updates_on_learned_reward += 1
             advantages, returns = compute_gae(rewards + bootstrap_buf, values_buf, next_values_buf, dones_buf,
                                               args.gamma, args.gae_lambda)
 
@@ -988,15 +925,9 @@ if __name__ == "__main__":
                                                          b_logprobs[idx], adv, clip)
                     value_loss = ppo_value_loss(critic(b_obs[idx])[:, 0], b_returns[idx])
                     loss = policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy
-                    check_finite("PPO loss", loss)  # before the step: the networks stay finite
-                    actor_optimizer.zero_grad()
-                    critic_optimizer.zero_grad()
-                    loss.backward()
-                    nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
-                    actor_optimizer.step()
-                    critic_optimizer.step()
+                    optimize(optimizer, loss, "PPO loss", args.max_grad_norm)
                     clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
-            progress.ppo_epochs += epochs
+            progress.counts["ppo_epochs"] += epochs
             writer.add_scalar("charts/clip_range", clip, progress.global_step)
             for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
                                 "approx_kl": ((ratio - 1) - ratio.log()).mean(), "clipfrac": np.mean(clip_fractions),
@@ -1005,61 +936,57 @@ if __name__ == "__main__":
                 writer.add_scalar(f"losses/{name}", torch.as_tensor(value).item(), progress.global_step)
             writer.add_scalar("charts/SPS", progress.global_step / (time.time() - start_time), progress.global_step)
 
-            if progress.global_step >= min((progress.evaluations + 1) * args.eval_every, args.total_timesteps):
+            if progress.global_step >= min((len(progress.eval_rows) + 1) * args.eval_every, args.total_timesteps):
                 if args.capture_video:
                     eval_env.name_prefix = f"step_{progress.global_step}"
-                seeds = [episode_seed(args.seed, EVAL_STREAM, progress.evaluations * args.eval_episodes + j)
+                seeds = [episode_seed(args.seed, EVAL_STREAM, len(progress.eval_rows) * args.eval_episodes + j)
                          for j in range(args.eval_episodes)]
                 judged = reward_model if progress.reward_ready and not args.ground_truth_reward else None
                 result = evaluate(actor, obs_stats, judged, eval_env, seeds, device)
                 if args.capture_video and eval_env.recording:  # write the video now, not at the next reset
                     eval_env.stop_recording()
-                progress.evaluations, progress.last_eval = progress.evaluations + 1, result["episode_return"]
-                eval_rows.append({"step": progress.global_step, **result, "feedback": progress.feedback_used,
-                                  "wall_time": round(time.time() - start_time, 1),
-                                  "overhead_seconds": round(progress.overhead_seconds, 1)})
+                progress.eval_rows.append({"step": progress.global_step, **result, "feedback": progress.feedback_used,
+                                           "wall_time": round(time.time() - start_time, 1),
+                                           "overhead_seconds": round(progress.overhead_seconds, 1)})
                 with open(eval_path, "a", newline="") as f:
-                    csv.DictWriter(f, eval_fields).writerow(eval_rows[-1])
+                    csv.DictWriter(f, eval_fields).writerow(progress.eval_rows[-1])
                 for name in ("episode_return", "success_rate", "reward_correlation"):
                     writer.add_scalar(f"eval/{name}", result[name], progress.global_step)
             if time.time() - last_print > 10 or progress.global_step >= args.total_timesteps:
                 last_print, left = time.time(), args.total_timesteps - progress.global_step
-                sps = progress.global_step / (last_print - start_time)
+                sps, last_eval = progress.global_step / (last_print - start_time), (progress.eval_rows or [{}])[-1]
                 print(f"step {progress.global_step}/{args.total_timesteps} | {sps:.0f} SPS | ETA {left / sps / 60:.1f} "
-                      f"min | last eval return {progress.last_eval:.1f} | labels {progress.feedback_used}/"
-                      f"{args.max_feedback}", flush=True)
+                      f"min | last eval return {last_eval.get('episode_return', math.nan):.1f} | labels "
+                      f"{progress.feedback_used}/{args.max_feedback}", flush=True)
 
             if args.checkpoint_every and progress.global_step >= progress.next_checkpoint_step or stop:
                 every = args.checkpoint_every or 1
                 progress.next_checkpoint_step = (progress.global_step // every + 1) * every
-                save_start, path = time.perf_counter(), os.path.join(output_dir, "checkpoint.pt")
-                save_checkpoint(path, checkpoint_state())
-                print(f"step {progress.global_step}: checkpoint.pt saved ({os.path.getsize(path) / 2**20:.1f} MiB in "
+                save_start, data = time.perf_counter(), io.BytesIO()
+                torch.save(checkpoint_state(), data)  # in memory first: a full disk is then a plain OSError
+                save_file(checkpoint_path, data.getvalue())
+                size_mib = os.path.getsize(checkpoint_path) / 2**20
+                print(f"step {progress.global_step}: checkpoint.pt saved ({size_mib:.1f} MiB in "
                       f"{time.perf_counter() - save_start:.1f} s)", flush=True)
             if stop:
-                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {progress.global_step}; "
-                      f"continue with --resume {output_dir}", flush=True)
+                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {progress.global_step}; continue with "
+                      f"--resume {output_dir}", flush=True)
                 writer.close()
                 sys.exit(128 + stop[0])
-    except NonFiniteError as error:
-        # Mid-rollout or mid-update the envs have moved past the last checkpoint, which stays as it is. The state at
-        # the failure (finite: the checks come before the optimizer steps) goes to a file of its own, to inspect
-        save_checkpoint(os.path.join(output_dir, "checkpoint_nonfinite.pt"), checkpoint_state())
-        last = os.path.join(output_dir, "checkpoint.pt")
-        fail(f"{error} at step {progress.global_step}; run stopped, "
-             f"{'its last checkpoint is intact in ' + last if os.path.exists(last) else 'no checkpoint was due yet'}, "
-             f"the state at the failure is in {output_dir}/checkpoint_nonfinite.pt and the labels in "
-             f"{output_dir}/labels", code=3)
+    except FloatingPointError as error:  # a NaN or infinity in a loss or from the environment
+        # Mid-rollout the envs have moved past the last checkpoint, which stays as it is. The state at the failure
+        # (finite: the checks come before the optimizer steps) goes to a file of its own, to inspect
+        torch.save(checkpoint_state(), os.path.join(output_dir, "checkpoint_nonfinite.pt"))
+        last = f"its last checkpoint is intact in {checkpoint_path}" if os.path.exists(checkpoint_path) else \
+            "no checkpoint was due yet"
+        fail(f"{error} at step {progress.global_step}; run stopped, {last}, the state at the failure is in "
+             f"{output_dir}/checkpoint_nonfinite.pt and the labels in {output_dir}/labels", code=3)
     except OSError as error:
-        fail(f"writing to {output_dir!r} failed at step {progress.global_step} ({error.strerror or error}); "
-             "the last checkpoint there is intact", code=1)
+        fail(f"writing to {output_dir!r} failed at step {progress.global_step} ({error.strerror or error}); the last "
+             "checkpoint there is intact", code=1)
 
-    counts = {name: getattr(progress, name) for name in
-              ("updates_on_knn_reward", "updates_on_learned_reward", "value_resets", "ppo_epochs")}
-    print(f"done: {counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
+    print(f"done: {progress.counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
           f"{progress.sessions_done} feedback sessions, {progress.feedback_used} queries; outputs in {output_dir}")
     torch.save({"actor": actor.state_dict(), "critic": critic.state_dict(), "reward_model": reward_model.state_dict(),
                 "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}, os.path.join(output_dir, "final_model.pt"))
-    for each_env in [*envs, eval_env]:
-        each_env.close()
     writer.close()

@@ -94,7 +94,7 @@ def test_env_adapter_has_float32_spaces_and_warns_nothing(env_id):
 def test_knn_distance_is_kth_neighbour_not_counting_the_state_itself():
     points = torch.tensor([[0.0], [1.0], [3.0], [6.0], [10.0]])
     # from 0: others at 1, 3, 6, 10 -> 2nd neighbour at 3; from 6: others at 4, 3, 5, 6 -> 2nd is 4
-    distances = pebble.knn_distance(points, points, k=2, chunk=2)  # chunk=2: the chunked path too
+    distances = pebble.knn_distance(points, points, k=2)
     assert distances[:, 0].tolist() == [3.0, 2.0, 3.0, 4.0, 7.0]
 
 
@@ -427,7 +427,7 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
     first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
     assert first.returncode == second.returncode == 0
     assert "\ndevice: cpu (--no-cuda)\n" in first.stdout
-    assert "note: one SAC update" not in first.stdout  # small networks: no projection line
+    assert "on this CPU (projected)" not in first.stdout  # small networks: no projection line
     assert "\n  sampler: entropy\n  schedule: uniform\n" in first.stdout  # the configuration, one key per line
     assert "note: only 20 of the 30 labels of --max-feedback fit in 800 steps" in first.stdout  # sessions at 401, 701
     assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
@@ -493,14 +493,14 @@ def test_paper_sizes_on_a_cpu_print_the_projected_time_first(tmp_path):
         lines = []
         for line in process.stdout:
             lines.append(line)
-            if line.startswith("note: one SAC update"):
+            if line.startswith("note: this run needs about"):
                 break
     finally:
         process.send_signal(signal.SIGKILL)
         process.communicate()
         watchdog.cancel()
     note = lines[-1]
-    assert note.startswith("note: one SAC update of this size takes ") and " hours; use a GPU, or the README's CPU " \
-        "scale: python pebble.py --env-id walker-walk --total-timesteps 100000 --hidden-dim 256" in note
-    hours = float(note.split("needs about ")[1].split(" hours")[0])
+    assert " h on this CPU (projected); use a GPU, or the CPU scale of docs/results.md: python pebble.py --env-id " \
+        "walker-walk --total-timesteps 100000 --hidden-dim 256" in note
+    hours = float(note.split("needs about ")[1].split(" h ")[0])
     assert hours >= 1  # 500K updates of 1024 x 2 networks, batch 1024: never under an hour on a CPU

@@ -74,9 +74,10 @@ def test_an_episode_is_a_function_of_its_seed_and_actions(env_id):
 
 
 def test_runs_with_different_seeds_share_no_episode_seed():
-    seeds = {run: {prefppo.episode_seed(run, stream, episode) for stream in [*range(32), prefppo.EVAL_STREAM]
-                   for episode in range(100)} for run in (1, 2)}
-    assert len(seeds[1]) == len(seeds[2]) == 33 * 100  # all different within a run, evaluation env included
+    # 32 training envs, 100 episodes each (episode j of env i: number j * 32 + i), and 3200 evaluation episodes
+    seeds = {run: {prefppo.episode_seed(run, stream, n) for stream in (prefppo.TRAIN_STREAM, prefppo.EVAL_STREAM)
+                   for n in range(32 * 100)} for run in (1, 2)}
+    assert len(seeds[1]) == len(seeds[2]) == 2 * 32 * 100  # all different within a run, evaluation env included
     assert not seeds[1] & seeds[2]  # env i used to get seed + i: runs 1 and 2 shared 31 of 32 envs
     assert prefppo.episode_seed(1, 0, 0) == prefppo.episode_seed(1, 0, 0)  # reproducible
     assert all(0 <= s < 2**32 for s in seeds[1])  # dm_control's RandomState takes 32-bit seeds
@@ -263,11 +264,11 @@ def test_knn_reward_scores_each_state_against_every_pretraining_state_so_far():
     assert first[0] == first[1] > 0 and len(knn.states) == 4
 
 
-def test_knn_distance_skips_the_state_itself_and_merges_blocks():
+def test_knn_distance_skips_the_state_itself():
     states = torch.tensor([[0.0], [1.0], [3.0], [7.0]])
     # k = 1: nearest other state; k = 2: second nearest (by hand: 0 -> 1, 3; 1 -> 1, 2; 3 -> 2, 3; 7 -> 4, 6)
     torch.testing.assert_close(prefppo.knn_distance(states, states, 1)[:, 0], torch.tensor([1.0, 1.0, 2.0, 4.0]))
-    torch.testing.assert_close(prefppo.knn_distance(states, states, 2, chunk=2)[:, 0], torch.tensor([3.0, 2.0, 3.0, 6.0]))
+    torch.testing.assert_close(prefppo.knn_distance(states, states, 2)[:, 0], torch.tensor([3.0, 2.0, 3.0, 6.0]))
 
 
 @pytest.mark.parametrize("env_id, epochs", [("walker-walk", 100), ("quadruped-walk", 100), ("cheetah-run", 100),
@@ -288,7 +289,7 @@ def test_query_pool_keeps_every_episode_by_default():
 
 
 def test_query_sampler_and_teacher_draw_independent_streams():
-    sampler_seed, teacher_seed = prefppo.numpy_seeds(1)
+    sampler_seed, teacher_seed, _ = prefppo.numpy_seeds(1)
     teacher = prefppo.make_teacher("stoc", seed=teacher_seed)
     # with one seed for both (the old behaviour) these draws were the same numbers
     assert not np.array_equal(np.random.default_rng(sampler_seed).random(8), teacher.rng.random(8))
@@ -420,10 +421,12 @@ BAD_INPUTS = [
     (["--teacher-gamma", "1.5"], "--teacher-gamma must be in (0, 1]"),
     (["--teacher-beta", "-1"], "--teacher-beta must be >= 0"),
     (["--num-envs", "2", "--num-steps", "10", "--minibatch-size", "64"], "--minibatch-size must be in [1, --num-envs x --num-steps = 20]"),
-    (["--gae-lambda", "1.5"], "--gae-lambda in [0, 1]"),
-    (["--clip-coef", "0"], "--clip-coef and --max-grad-norm must be > 0"),
+    (["--gae-lambda", "1.5"], "--gae-lambda must be in [0, 1], got 1.5"),
+    (["--clip-coef", "0"], "--clip-coef must be > 0, got 0.0"),
+    (["--max-grad-norm", "-1"], "--max-grad-norm must be > 0"),
     (["--seed", "-1"], "--seed must be >= 0, got -1"),
-    (["--query-recent-episodes", "-1"], "--query-recent-episodes and --checkpoint-every must be >= 0"),
+    (["--query-recent-episodes", "-1"], "--query-recent-episodes must be >= 0"),
+    (["--unsup-steps", "5000000"], "--total-timesteps must be > --unsup-steps (5000000)"),
 ]
 
 

@@ -2,6 +2,7 @@
 and SIGTERM (compared with the uninterrupted run of the same seed), atomic checkpoint writes, --labels-from,
 non-finite stops and output-directory failures."""
 
+import io
 import json
 import resource
 import signal
@@ -95,8 +96,10 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path
 @pytest.mark.parametrize("module", [pebble, prefppo])
 def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, tmp_path):
     path = tmp_path / "checkpoint.pt"
-    module.save_checkpoint(str(path), {"step": 1, "weights": torch.ones(10)})
-    # a second write killed half-way (SIGKILL from inside torch.save, after some bytes are out)
+    data = io.BytesIO()
+    torch.save({"step": 1, "weights": torch.ones(10)}, data)
+    module.save_file(str(path), data.getvalue())
+    # a second write killed half-way (SIGKILL after some bytes are out)
     code = (f"import os, signal, torch, {module.__name__} as m\n"
             "real_open = open\n"
             "class HalfWritten:\n"  # the temporary file: some bytes reach the disk, then SIGKILL
@@ -105,7 +108,7 @@ def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(modu
             "    def __exit__(self, *a): pass\n"
             "    def write(self, data): self.f.write(bytes(data)[:1000]); self.f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n"
             "m.open = HalfWritten\n"
-            f"m.save_checkpoint({str(path)!r}, {{'step': 2}})\n")
+            f"m.save_file({str(path)!r}, bytes(5000))\n")
     killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
     assert killed.returncode == -signal.SIGKILL
     assert torch.load(path, weights_only=False)["step"] == 1
@@ -214,17 +217,17 @@ def test_prefppo_diverging_loss_keeps_the_last_good_checkpoint(tmp_path):
 
 
 def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
-    # a NaN in an episode that its seed decides (seed 1: in the rollout from step 240, the 4th of 80 steps), after
-    # the checkpoint at 160; the envs have moved past 160, so checkpoint.pt must stay the one of step 160
+    # a NaN in an episode that its seed decides (seed 1: in the rollout from step 320, the 5th of 80 steps), after
+    # the checkpoint at 240; the envs have moved past 240, so checkpoint.pt must stay the one of step 240
     out = tmp_path / "run"
-    result = prefppo_stopped_by("tests.toy_envs:NaNSeededEpisode-v0", 160, out)
-    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 240;")
-    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 160
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 240
+    result = prefppo_stopped_by("tests.toy_envs:NaNSeededEpisode-v0", 240, out)
+    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 320;")
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 240
+    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 320
     # the last good checkpoint resumes: the envs replay their episodes and meet the NaN at the same step again
     resumed = run_script("prefppo.py", out, "--resume", str(out))
-    assert resumed.returncode == 3 and "resuming from the checkpoint at step 160" in resumed.stdout
-    assert "observation from the environment at step 240;" in resumed.stderr
+    assert resumed.returncode == 3 and "resuming from the checkpoint at step 240" in resumed.stdout
+    assert "observation from the environment at step 320;" in resumed.stderr
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
