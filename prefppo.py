@@ -378,6 +378,28 @@ def optimize(optimizer, loss: torch.Tensor, name: str, max_grad_norm: float | No
     optimizer.step()
 
 
+def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optimizer, epochs, clip, args) -> dict:
+    """PPO's update of a rollout (appendix Eqs. (4)-(5)): `epochs` passes in shuffled minibatches, each one step on
+    the clipped surrogate + vf_coef x the value loss - ent_coef x the entropy, advantages normalised per minibatch."""
+    clip_fractions = []
+    for _ in range(epochs):
+        order = torch.randperm(len(obs), device=obs.device)
+        for start in range(0, len(obs), args.minibatch_size):
+            idx = order[start : start + args.minibatch_size]
+            distribution, _ = actor.distribution(obs[idx])
+            adv = advantages[idx]
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
+            entropy = distribution.entropy().sum(-1).mean()
+            policy_loss, ratio = ppo_policy_loss(distribution.log_prob(actions[idx]).sum(-1), logprobs[idx], adv, clip)
+            value_loss = ppo_value_loss(critic(obs[idx])[:, 0], returns[idx])
+            loss = policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy
+            optimize(optimizer, loss, "PPO loss", args.max_grad_norm)
+            clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
+    losses = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
+              "approx_kl": ((ratio - 1) - ratio.log()).mean(), "clipfrac": np.mean(clip_fractions)}
+    return {name: torch.as_tensor(value).detach() for name, value in losses.items()}
+
+
 def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
     """Generalised advantage estimation over a rollout of shape (T, N). next_values[t] is V of the state after
     step t; a done step (termination or truncation) cuts the recursion. A truncated step carries
@@ -911,29 +933,15 @@ if __name__ == "__main__":
             b_obs, b_actions = obs_buf.reshape(-1, obs_dim), actions_buf.reshape(-1, action_dim)
             b_logprobs, b_advantages, b_returns, b_values = (
                 x.reshape(-1) for x in (logprobs_buf, advantages, returns, values_buf))
-            clip, clip_fractions = clip_range(args.clip_coef, progress.global_step, args.total_timesteps), []
+            clip = clip_range(args.clip_coef, progress.global_step, args.total_timesteps)
             epochs = args.update_epochs if progress.reward_ready else args.unsup_update_epochs
-            for epoch in range(epochs):
-                order = torch.randperm(rollout, device=device)
-                for start in range(0, rollout, args.minibatch_size):
-                    idx = order[start : start + args.minibatch_size]
-                    distribution, _ = actor.distribution(b_obs[idx])
-                    adv = b_advantages[idx]
-                    adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
-                    entropy = distribution.entropy().sum(-1).mean()
-                    policy_loss, ratio = ppo_policy_loss(distribution.log_prob(b_actions[idx]).sum(-1),
-                                                         b_logprobs[idx], adv, clip)
-                    value_loss = ppo_value_loss(critic(b_obs[idx])[:, 0], b_returns[idx])
-                    loss = policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy
-                    optimize(optimizer, loss, "PPO loss", args.max_grad_norm)
-                    clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
+            losses = ppo_update(b_obs, b_actions, b_logprobs, b_advantages, b_returns, actor, critic, optimizer, epochs,
+                                clip, args)
             progress.counts["ppo_epochs"] += epochs
+            losses["explained_variance"] = 1 - (b_returns - b_values).var() / b_returns.var().clamp(1e-8)
             writer.add_scalar("charts/clip_range", clip, progress.global_step)
-            for name, value in {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
-                                "approx_kl": ((ratio - 1) - ratio.log()).mean(), "clipfrac": np.mean(clip_fractions),
-                                "explained_variance": 1 - (b_returns - b_values).var() / b_returns.var().clamp(1e-8)
-                                }.items():
-                writer.add_scalar(f"losses/{name}", torch.as_tensor(value).item(), progress.global_step)
+            for name, value in losses.items():
+                writer.add_scalar(f"losses/{name}", float(value), progress.global_step)
             writer.add_scalar("charts/SPS", progress.global_step / (time.time() - start_time), progress.global_step)
 
             if progress.global_step >= min((len(progress.eval_rows) + 1) * args.eval_every, args.total_timesteps):
