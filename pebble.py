@@ -433,6 +433,12 @@ def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 163
             buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
 
 
+def usable_episodes(completed: list, buffer: ReplayBuffer, segment_len: int, recent: int) -> list:
+    """The query pool: the last `recent` (0 = all) complete episodes still whole in the buffer, long enough."""
+    usable = [(s, n) for s, n in completed if n >= segment_len and buffer.added - s <= buffer.capacity]
+    return usable[-recent:] if recent else usable
+
+
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
     """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against (1 - y, y), (batch, 2)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
@@ -790,12 +796,10 @@ if __name__ == "__main__":
             progress.global_step = global_step
             reset_critic = args.ground_truth_reward and global_step == pretrain_end + 1  # as PEBBLE, on the true reward
             # Feedback session (Algorithm 3, reward learning): the first at the end of pre-training, then every
-            # feedback_every steps. SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat, relabel. The
-            # query pool: of the episodes still whole in the buffer and long enough, the last query_recent_episodes
+            # feedback_every steps. SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat, relabel
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
-                    and progress.sessions_done < len(session_sizes) and (usable := [
-                        (s, n) for s, n in progress.completed_episodes if n >= args.segment_len
-                        and buffer.added - s <= buffer.capacity][-args.query_recent_episodes:])):  # 0: all
+                    and progress.sessions_done < len(session_sizes) and (usable := usable_episodes(
+                        progress.completed_episodes, buffer, args.segment_len, args.query_recent_episodes))):
                 with progress.overhead():
                     size = int(session_sizes[progress.sessions_done])
                     sampler = args.sampler if progress.reward_ready else "uniform"  # the first: uniform (reference)
