@@ -152,7 +152,8 @@ def test_a_rerun_with_other_flags_is_refused_rather_than_mixed_into_the_runs(loc
 @pytest.mark.slow
 def test_ray_backend_runs_the_same_grid_with_the_same_results(local_grid, tmp_path):
     root = tmp_path / "ray"
-    result = run_grid(root, *TINY_GRID, "--backend", "ray", "--workers", "2")
+    # a generous limit: Ray's start and the 12 runs took over 10 min when the two cores were shared with other work
+    result = run_grid(root, *TINY_GRID, "--backend", "ray", "--workers", "2", timeout=1500)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert "Started a local Ray instance" in result.stderr and "12/12 done" in result.stdout
     for name in TEACHER_RUNS + GROUND_TRUTH_RUNS:
