@@ -1,19 +1,15 @@
 # PEBBLE (Lee, Smith, Abbeel 2021) as benchmarked by B-Pref (Lee et al. 2021); docs/pebble.md
 import contextlib
-import csv
 import glob
-import importlib
 import io
-import itertools
 import json
 import math
 import os
-import shutil
 import signal
 import sys
 import time
 import warnings
-from collections import namedtuple
+from collections import deque, namedtuple
 from dataclasses import asdict, dataclass, field, fields
 from typing import Literal
 
@@ -24,7 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 import tyro
 
-from samplers import random_pairs, schedule_sizes, select
+from samplers import draw_segments, planned_labels, schedule_sizes, select
 from sim_teacher import make_teacher
 
 
@@ -185,24 +181,14 @@ class MetaWorldSeeding(gym.Wrapper):
 
 
 def env_kind(env_id: str) -> str:
-    """'dmc', 'metaworld' or 'gym' for a known id; ValueError otherwise."""
+    """'dmc' for a suite task (domain-task), 'metaworld' for a v3 task name (with or without -v3), else 'gym'."""
     import metaworld
 
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
     if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
-    if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
-        return "metaworld"
-    module, _, gym_id = env_id.rpartition(":")  # "my_package:MyEnv-v0" registers MyEnv-v0 on import
-    try:
-        importlib.import_module(module) if module else None
-    except ImportError as error:
-        raise ValueError(f"--env-id {env_id!r}: cannot import {module!r} ({error})") from None
-    if gym_id in gym.registry:
-        return "gym"
-    raise ValueError(f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), a Meta-World v3 task "
-                     "(e.g. button-press) or a registered Gymnasium id (optionally module:id)")
+    return "metaworld" if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS else "gym"
 
 
 def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]:
@@ -225,7 +211,11 @@ def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]
         env.unwrapped.seeded_rand_vec = True
         env, episode_len = MetaWorldSeeding(env), env.spec.max_episode_steps or 500
     else:
-        env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
+        try:  # "my_package:MyEnv-v0": Gymnasium imports my_package, which registers MyEnv-v0
+            env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
+        except (gym.error.Error, ImportError) as error:
+            raise ValueError(f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), a Meta-World v3 "
+                             f"task (e.g. button-press) or a Gymnasium id (optionally module:id): {error}") from None
         episode_len = env.spec.max_episode_steps
         if not (isinstance(env.action_space, gym.spaces.Box) and isinstance(env.observation_space, gym.spaces.Box)
                 and episode_len):
@@ -245,8 +235,8 @@ def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
 
 
 def episode_seed(run_seed: int, stream: int, episode: int) -> int:
-    """The reset seed of episode `episode` of a stream: a 32-bit draw of SeedSequence([run_seed, stream, episode]),
-    so any episode can be played again alone, and runs with different seeds share no episode (up to chance)."""
+    """The reset seed of an episode of a stream, drawn from SeedSequence([run_seed, stream, episode]): any episode
+    can be played again alone, and runs with different seeds share no episode (up to chance)."""
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
 
 
@@ -372,33 +362,29 @@ def soft_update(critic: nn.Module, critic_target: nn.Module, tau: float):
 
 
 class ReplayBuffer:
-    """On the training device; `rewards` is r_hat (relabelled), `added` counts every transition ever stored."""
-    fields = ("obs", "actions", "rewards", "true_rewards", "next_obs", "terminated")
+    """Transitions on the training device, the oldest overwritten when full; `rewards` holds r_hat (relabelled)."""
 
     def __init__(self, capacity, obs_dim, action_dim, device):
-        self.capacity, self.size, self.pos, self.added, self.device = capacity, 0, 0, 0, device
-        self.obs, self.next_obs = (torch.zeros(capacity, obs_dim, device=device) for _ in range(2))
-        self.actions = torch.zeros(capacity, action_dim, device=device)
-        self.rewards, self.true_rewards, self.terminated = (torch.zeros(capacity, 1, device=device) for _ in range(3))
+        self.capacity, self.size, self.pos, self.device = capacity, 0, 0, device
+        for name, dim in zip(Batch._fields, (obs_dim, action_dim, 1, obs_dim, 1)):
+            setattr(self, name, torch.zeros(capacity, dim, device=device))
 
-    def add(self, obs, action, reward, true_reward, next_obs, terminated):
-        i = self.pos
-        self.obs[i], self.actions[i], self.next_obs[i] = (torch.as_tensor(x) for x in (obs, action, next_obs))
-        self.rewards[i], self.true_rewards[i], self.terminated[i] = reward, true_reward, float(terminated)
-        self.pos, self.size, self.added = (i + 1) % self.capacity, min(self.size + 1, self.capacity), self.added + 1
+    def add(self, *transition):  # obs, action, reward, next obs, terminated
+        for name, value in zip(Batch._fields, transition):
+            getattr(self, name)[self.pos] = torch.as_tensor(value)
+        self.pos, self.size = (self.pos + 1) % self.capacity, min(self.size + 1, self.capacity)
 
-    def sample(self, batch_size):
+    def sample(self, batch_size) -> Batch:
         idx = torch.randint(self.size, (batch_size,), device=self.device)
-        return Batch(self.obs[idx], self.actions[idx], self.rewards[idx], self.next_obs[idx], self.terminated[idx])
+        return Batch(*(getattr(self, name)[idx] for name in Batch._fields))
 
     def state_dict(self) -> dict:  # the filled rows only, copied (a slice would save the whole tensor)
-        counters = {"pos": self.pos, "size": self.size, "added": self.added}
-        return {name: getattr(self, name)[: self.size].clone() for name in self.fields} | counters
+        return {name: getattr(self, name)[: self.size].clone() for name in Batch._fields} | {"pos": self.pos}
 
     def load_state_dict(self, state: dict):
-        for name in self.fields:
-            getattr(self, name)[: state["size"]] = state[name]
-        self.pos, self.size, self.added = state["pos"], state["size"], state["added"]
+        self.pos, self.size = state["pos"], len(state["obs"])
+        for name in Batch._fields:
+            getattr(self, name)[: self.size] = state[name]
 
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
@@ -433,10 +419,9 @@ def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 163
             buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
 
 
-def usable_episodes(completed: list, buffer: ReplayBuffer, segment_len: int, recent: int) -> list:
-    """The query pool: the last `recent` (0 = all) complete episodes still whole in the buffer, long enough."""
-    usable = [(s, n) for s, n in completed if n >= segment_len and buffer.added - s <= buffer.capacity]
-    return usable[-recent:] if recent else usable
+def coverage_features(inputs0: torch.Tensor, inputs1: torch.Tensor, obs_dim: int) -> np.ndarray:
+    """Appendix, coverage sampling: the states of both segments of each query, flattened and concatenated."""
+    return torch.cat([inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)], 1).cpu().numpy()
 
 
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
@@ -452,9 +437,10 @@ def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple
     return int(((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5))[strict].sum()), int(strict.sum())
 
 
-def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs) -> tuple[float, float]:
-    """Algorithm 3, reward learning: up to max_epochs passes over D, one shuffle per member, until 97% accuracy."""
-    for _ in range(max_epochs):
+def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
+    """Algorithm 3, reward learning: up to --reward-epochs passes over D, one shuffle per member, until 97% accuracy."""
+    inputs0, inputs1, y = preferences["inputs0"], preferences["inputs1"], preferences["y"]
+    for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
         correct = counted = 0
         losses = []
@@ -474,14 +460,7 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
     return float(np.mean(losses)), accuracy
 
 
-def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes) -> int:
-    """Labels asked: session i at step pretrain_steps + 1 + i * feedback_every while <= total_timesteps (assumes a
-    complete episode by the end of pre-training, as on DMC and Meta-World; a later first session asks fewer)."""
-    n_sessions = max(0, (total_timesteps - pretrain_steps - 1) // feedback_every + 1)
-    return int(np.sum(session_sizes[:n_sessions]))
-
-
-# Plumbing: command line, files, evaluation, the loop's counters
+# Plumbing: command line, files, evaluation, the loop's state
 def fail(message: str, code: int = 2):
     print(f"error: {message}", file=sys.stderr)
     sys.exit(code)
@@ -494,9 +473,9 @@ def parse_args() -> Args:
         with contextlib.redirect_stderr(captured):
             args = tyro.cli(Args)
     except SystemExit as exit_:
-        if exit_.code:  # not --help
-            lines = [line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:]]  # the box's text
-            fail(" ".join(line for line in itertools.takewhile(lambda x: x[:1] != "─", lines) if line))
+        if exit_.code:  # not --help: the box's text up to its first rule
+            text = "\n".join(line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:])
+            fail(" ".join(text.split("\n─")[0].split()))
         raise
     sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
     return args
@@ -559,8 +538,8 @@ def check_args(args: Args, episode_len: int):
 
 
 def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> dict:
-    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz) as
-    inputs0, inputs1 (obs and action per step), y and the coverage features."""
+    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz) as the labelled
+    dataset's inputs0, inputs1 (observation and action per step) and y."""
     files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
                                                       or glob.glob(os.path.join(path, "session_*.npz")))
     sessions = [dict(np.load(file)) for file in files]
@@ -568,11 +547,10 @@ def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> d
                            for s in sessions):
         raise ValueError(f"--labels-from {path!r}: no session_*.npz files, or segments that do not fit this run "
                          f"({segment_len} steps of {obs_dim} observations and {action_dim} actions)")
-    kept = {k: np.concatenate([s[k][s["keep"]] for s in sessions]) for k in ("obs0", "actions0", "obs1", "actions1")}
-    y = np.concatenate([s["y"][s["keep"]] for s in sessions]).astype(np.float32)
-    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": y,
-            "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1),
-            "features": np.concatenate([kept["obs0"].reshape(len(y), -1), kept["obs1"].reshape(len(y), -1)], 1)}
+    kept = {key: np.concatenate([s[key][s["keep"]] for s in sessions]) for key in ("obs0", "actions0", "obs1",
+                                                                                   "actions1", "y")}
+    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1),
+            "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1), "y": kept["y"].astype(np.float32)}
 
 
 def save_file(path: str, data: bytes):
@@ -585,6 +563,16 @@ def save_file(path: str, data: bytes):
     finally:
         if os.path.exists(f"{path}.tmp"):
             os.remove(f"{path}.tmp")
+
+
+EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
+                "wall_time", "overhead_seconds")
+
+
+def eval_csv(rows: list[dict]) -> bytes:
+    """eval.csv, written whole after each evaluation (a resumed run writes its checkpoint's rows again: none twice)."""
+    lines = [EVAL_COLUMNS] + [[row[column] for column in EVAL_COLUMNS] for row in rows]
+    return "".join(",".join(map(str, line)) + "\n" for line in lines).encode()
 
 
 def evaluate(actor, reward_model, env, seeds: list[int], device) -> dict:
@@ -603,16 +591,15 @@ def evaluate(actor, reward_model, env, seeds: list[int], device) -> dict:
             done, returns[-1], success = terminated or truncated, returns[-1] + reward, success or info.get("success")
             true_rewards.append(reward)
         successes.append(bool(success))
-    correlation = float("nan")
-    if learned and np.std(learned) > 0 and np.std(true_rewards) > 0:
-        correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
+    correlated = learned and np.std(learned) > 0 and np.std(true_rewards) > 0
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
-            "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
+            "success_rate": float(np.mean(successes)),
+            "reward_correlation": float(np.corrcoef(learned, true_rewards)[0, 1]) if correlated else math.nan}
 
 
 def projected_cpu_hours(args: Args, obs_dim: int, action_dim: int) -> float:
-    """The run's SAC updates on this CPU, from 3 updates of throwaway networks on random data (before a warm-up
-    update), timed before the run seeds torch (its state is untouched)."""
+    """The run's SAC updates on this CPU: 3 timed updates (after a warm-up one) of throwaway networks on random
+    data, before the run seeds torch (its state is untouched)."""
     nets = [cls(obs_dim, action_dim, args.hidden_dim, args.num_layers) for cls in (Actor, TwinCritic, TwinCritic)]
     log_alpha = torch.zeros((), requires_grad=True)
     optimizers = [torch.optim.Adam(p) for p in (nets[0].parameters(), nets[1].parameters(), [log_alpha])]
@@ -626,14 +613,12 @@ def projected_cpu_hours(args: Args, obs_dim: int, action_dim: int) -> float:
 
 @dataclass
 class Progress:
-    """Every counter the main loop carries: a checkpoint saves asdict(progress), a resume restores
-    Progress(**saved), so a counter added here is checkpointed by construction."""
+    """What the main loop carries besides networks, optimizers and buffers: a checkpoint saves asdict(progress), a
+    resume restores Progress(**saved), so a field added here is checkpointed by construction."""
 
     global_step: int = 0
-    episode_start: int = 0  # buffer.added at the running episode's first transition
-    episode_steps: int = 0
-    episode_return: float = 0.0
-    completed_episodes: list = field(default_factory=list)  # (first transition number, length) of each
+    episodes: int = 0  # training episodes before the running one (its number for episode_seed)
+    current: tuple = field(default_factory=lambda: ([], [], []))  # the running episode's observations, actions, rewards
     recent_returns: list = field(default_factory=list)  # true returns of the last 10 training episodes
     sessions_done: int = 0
     feedback_used: int = 0
@@ -660,9 +645,8 @@ if __name__ == "__main__":
         eval_env, _ = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
         check_args(args, episode_len)
-        imported = None
-        if args.labels_from and not args.resume:
-            imported = load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
+        imported = (load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
+                    if args.labels_from and not args.resume else None)
     except (ValueError, OSError, KeyError) as error:
         fail(str(error))
     if args.capture_video:  # render one frame now rather than fail at the first evaluation
@@ -702,7 +686,7 @@ if __name__ == "__main__":
         import wandb
 
         wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=config, name=run_name, save_code=True)
-    checkpoint_path = os.path.join(output_dir, "checkpoint.pt")
+    checkpoint_path, eval_path = os.path.join(output_dir, "checkpoint.pt"), os.path.join(output_dir, "eval.csv")
     checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False) if args.resume else None
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
@@ -724,23 +708,26 @@ if __name__ == "__main__":
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
     buffer, intrinsic_stats = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device), RunningMeanStd()
-    learners = {"actor": actor, "critic": critic, "critic_target": critic_target, "reward_model": reward_model,
-                "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
-                "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer, "buffer": buffer}
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     pretrain_end = args.seed_steps + args.unsup_steps
-    spent = planned_labels(args.total_timesteps, pretrain_end, args.feedback_every, session_sizes)
+    spent = planned_labels(session_sizes, pretrain_end + 1, args.feedback_every, args.total_timesteps)
     if spent < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
               f"steps (sessions from step {pretrain_end + 1}, every {args.feedback_every} steps)")
-    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset D, per session
-    if imported:  # earlier labels: free, not counted in this run's budget
-        for key, value in imported.items():
-            preferences[key].append(torch.as_tensor(value, device=device) if key != "features" else value)
+    # The labelled dataset D: both segments' (observation, action) per step, and the label (--labels-from's are free)
+    empty = np.zeros((0, args.segment_len, obs_dim + action_dim), np.float32)
+    preferences = imported or {"inputs0": empty, "inputs1": empty, "y": np.zeros(0, np.float32)}
+    preferences = {key: torch.as_tensor(value, device=device) for key, value in preferences.items()}
+    if imported:
         print(f"--labels-from: {len(imported['y'])} labels from {args.labels_from}")
+    # The query pool: the last query_recent_episodes complete episodes, (observations, actions, true rewards) each
+    episodes = deque(maxlen=args.query_recent_episodes or None)  # (reference code: an annotation buffer of 100)
     progress = Progress(next_feedback_step=pretrain_end + 1)
+    learners = {"actor": actor, "critic": critic, "critic_target": critic_target, "reward_model": reward_model,
+                "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
+                "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer, "buffer": buffer}
     if checkpoint:  # --resume: every part back, key by key
         progress = Progress(**checkpoint["progress"])
         print(f"resuming from the checkpoint at step {progress.global_step}")
@@ -749,9 +736,9 @@ if __name__ == "__main__":
         with torch.no_grad():
             log_alpha.copy_(checkpoint["log_alpha"])
         vars(intrinsic_stats).update(checkpoint["intrinsic_stats"])
-        preferences = {key: [v.to(device) if torch.is_tensor(v) else v for v in values]
-                       for key, values in checkpoint["preferences"].items()}
+        preferences = {key: value.to(device) for key, value in checkpoint["preferences"].items()}
         teacher, rng, action_rng = checkpoint["teacher"], checkpoint["rng"], checkpoint["action_rng"]
+        episodes.extend(checkpoint["episodes"])
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
@@ -760,19 +747,12 @@ if __name__ == "__main__":
         aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
         for path in sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]:
             os.makedirs(aside, exist_ok=True)  # asked after the checkpoint: kept aside, the run asks them again
-            shutil.move(path, aside)
-    eval_path, eval_fields = os.path.join(output_dir, "eval.csv"), ["step", "episode_return", "episode_return_std",
-                                                                    "success_rate", "feedback", "reward_correlation",
-                                                                    "wall_time", "overhead_seconds"]
-    with open(f"{eval_path}.tmp", "w", newline="") as f:  # rows logged after the checkpoint are dropped
-        csv.DictWriter(f, eval_fields).writeheader()
-        csv.DictWriter(f, eval_fields).writerows(progress.eval_rows)
-    os.replace(f"{eval_path}.tmp", eval_path)
+            os.replace(path, os.path.join(aside, os.path.basename(path)))
     # The training env at the start of its running episode (that episode's seed), then that episode's actions so far
     # again: MuJoCo is deterministic, so a resumed env is exactly where it was (a new run has no actions to replay)
-    obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, len(progress.completed_episodes)))
-    for i in range(progress.episode_steps):
-        obs = env.step(buffer.actions[(progress.episode_start + i) % buffer.capacity].cpu().numpy())[0]
+    obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
+    for action in progress.current[1]:
+        obs = env.step(action)[0]
     if args.capture_video:  # the first episode of each evaluation: videos/step_N-episode-M.mp4
         eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(output_dir, "videos"),
                                             episode_trigger=lambda episode: episode % args.eval_episodes == 0)
@@ -783,44 +763,40 @@ if __name__ == "__main__":
 
     def checkpoint_state() -> dict:
         """Everything the run needs to go on exactly after this step, but the env (reset with its episode's seed,
-        then the episode's actions replayed from the buffer)."""
+        then the episode's actions replayed)."""
         return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
                 **{name: part.state_dict() for name, part in learners.items()}, "log_alpha": log_alpha.detach(),
                 "intrinsic_stats": vars(intrinsic_stats), "preferences": preferences, "teacher": teacher, "rng": rng,
-                "action_rng": action_rng, "torch_rng": torch.get_rng_state(),
+                "action_rng": action_rng, "episodes": list(episodes), "torch_rng": torch.get_rng_state(),
                 "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
 
     # Main loop: Algorithm 3 (PEBBLE) with Algorithm 2 (unsupervised pre-training) for the first steps
     try:
+        save_file(eval_path, eval_csv(progress.eval_rows))  # a resumed run drops the rows after its checkpoint
         for global_step in range(progress.global_step + 1, args.total_timesteps + 1):
             progress.global_step = global_step
             reset_critic = args.ground_truth_reward and global_step == pretrain_end + 1  # as PEBBLE, on the true reward
             # Feedback session (Algorithm 3, reward learning): the first at the end of pre-training, then every
             # feedback_every steps. SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat, relabel
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
-                    and progress.sessions_done < len(session_sizes) and (usable := usable_episodes(
-                        progress.completed_episodes, buffer, args.segment_len, args.query_recent_episodes))):
+                    and progress.sessions_done < len(session_sizes)
+                    and any(len(episode[0]) >= args.segment_len for episode in episodes)):
                 with progress.overhead():
                     size = int(session_sizes[progress.sessions_done])
                     sampler = args.sampler if progress.reward_ready else "uniform"  # the first: uniform (reference)
                     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
-                    e0, s0, e1, s1 = random_pairs([n for _, n in usable], args.segment_len, n_candidates, rng)
-                    starts = np.array([s for s, _ in usable], dtype=np.int64)
-                    idx0, idx1 = (torch.as_tensor((starts[e] + s)[:, None] + np.arange(args.segment_len), device=device)
-                                  % buffer.capacity for e, s in ((e0, s0), (e1, s1)))
-                    inputs0, inputs1 = (torch.cat([buffer.obs[i], buffer.actions[i]], -1) for i in (idx0, idx1))
-                    # appendix: both segments' states concatenated, for the coverage samplers
-                    features = torch.cat([buffer.obs[i].flatten(1) for i in (idx0, idx1)], 1).cpu().numpy()
-                    chosen = np.arange(size)  # uniform: random_pairs drew `size` uniform pairs
+                    candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
+                    sides = [np.concatenate([candidates[f"obs{i}"], candidates[f"actions{i}"]], -1) for i in (0, 1)]
+                    inputs0, inputs1 = (torch.as_tensor(side, device=device) for side in sides)  # (s, a) per step
+                    chosen = np.arange(size)  # uniform: `size` uniform pairs were drawn
                     if sampler != "uniform":
                         with torch.no_grad():
                             probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))[..., 0]
-                        labelled = np.concatenate(preferences["features"]) if preferences["features"] else None
-                        chosen = select(sampler, size, probs=probs.cpu().numpy(), features=features,
-                                        labeled_features=labelled, rng=rng)
-                    segments = {f"{key}{i}": part[idx[chosen]].cpu().numpy() for i, idx in enumerate((idx0, idx1))
-                                for key, part in (("obs", buffer.obs), ("actions", buffer.actions),
-                                                  ("rewards", buffer.true_rewards[:, 0]))}
+                        labelled = (coverage_features(preferences["inputs0"], preferences["inputs1"], obs_dim)
+                                    if sampler.endswith("coverage") else None)
+                        chosen = select(sampler, size, probs=probs.cpu().numpy(), rng=rng, labeled_features=labelled,
+                                        features=coverage_features(inputs0, inputs1, obs_dim))
+                    segments = {key: value[chosen] for key, value in candidates.items()}
                     # Appendix, adaptive thresholds: mean true return of the last 10 training episodes (reference code)
                     teacher.set_thresholds(float(np.mean(progress.recent_returns)), args.segment_len, episode_len)
                     y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
@@ -830,19 +806,16 @@ if __name__ == "__main__":
                     progress.feedback_used += size
                     progress.sessions_done += 1
                     progress.next_feedback_step = global_step + args.feedback_every
-                    kept = chosen[keep]
-                    preferences["inputs0"].append(inputs0[kept])
-                    preferences["inputs1"].append(inputs1[kept])
-                    preferences["y"].append(torch.as_tensor(y[keep], dtype=torch.float32, device=device))
-                    preferences["features"] += [features[kept]] if args.sampler.endswith("coverage") else []
-                    skipped, equal, n_labels = (~keep).sum(), (y[keep] == 0.5).sum(), sum(map(len, preferences["y"]))
+                    new = {"inputs0": inputs0[chosen[keep]], "inputs1": inputs1[chosen[keep]],
+                           "y": torch.as_tensor(y[keep], dtype=torch.float32, device=device)}
+                    preferences = {key: torch.cat([preferences[key], new[key]]) for key in preferences}
+                    skipped, equal, n_labels = (~keep).sum(), (y[keep] == 0.5).sum(), len(preferences["y"])
                     for name, value in [("labels", progress.feedback_used), ("skipped", skipped), ("equal", equal)]:
                         writer.add_scalar(f"feedback/{name}", int(value), global_step)
                     if n_labels == 0:  # every query so far was skipped: nothing to learn from yet
                         print(f"step {global_step}: all {size} queries skipped, the reward model stays as it is")
                     else:
-                        loss, accuracy = train_reward(reward_model, reward_optimizer, *(torch.cat(preferences[key])
-                                                      for key in ("inputs0", "inputs1", "y")), args, args.reward_epochs)
+                        loss, accuracy = train_reward(reward_model, reward_optimizer, preferences, args)
                         relabel(buffer, reward_model)
                         progress.counts["relabels"] += 1
                         writer.add_scalar("reward/loss", loss, global_step)
@@ -869,22 +842,23 @@ if __name__ == "__main__":
             else:
                 with torch.no_grad():
                     action = actor.sample(torch.as_tensor(obs, device=device)[None])[0][0].cpu().numpy()
-            next_obs, true_reward, terminated, truncated, info = env.step(action)
+            next_obs, true_reward, terminated, truncated, _ = env.step(action)
             if not (math.isfinite(true_reward) and np.isfinite(next_obs).all()):
                 raise FloatingPointError(f"non-finite reward ({true_reward}) or observation from the environment")
             reward = float(true_reward) if args.ground_truth_reward else 0.0
             if progress.reward_ready and not args.ground_truth_reward:  # Algorithm 3: store r_hat(s_t, a_t)
                 with progress.overhead(), torch.no_grad():
                     reward = reward_model(torch.as_tensor(np.concatenate([obs, action]), device=device)).mean().item()
-            buffer.add(obs, action, reward, true_reward, next_obs, terminated)
-            obs, progress.episode_steps = next_obs, progress.episode_steps + 1
-            progress.episode_return += float(true_reward)
-            if terminated or truncated:
-                progress.completed_episodes.append((progress.episode_start, progress.episode_steps))
-                progress.recent_returns = (progress.recent_returns + [progress.episode_return])[-10:]
-                writer.add_scalar("charts/episodic_return", progress.episode_return, global_step)
-                obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, len(progress.completed_episodes)))
-                progress.episode_start, progress.episode_steps, progress.episode_return = buffer.added, 0, 0.0
+            buffer.add(obs, action, reward, next_obs, terminated)
+            for part, value in zip(progress.current, (obs, action, true_reward)):
+                part.append(value)
+            obs = next_obs
+            if terminated or truncated:  # to the query pool; the next episode starts from its own seed
+                episodes.append(tuple(np.array(part, dtype=np.float32) for part in progress.current))
+                progress.recent_returns = (progress.recent_returns + [float(sum(progress.current[2]))])[-10:]
+                writer.add_scalar("charts/episodic_return", progress.recent_returns[-1], global_step)
+                progress.current, progress.episodes = ([], [], []), progress.episodes + 1
+                obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
 
             # Policy learning: SAC on the kNN state entropy during pre-training (and while every query was
             # skipped), then on the learned reward (or the true reward with --ground-truth-reward)
@@ -918,8 +892,7 @@ if __name__ == "__main__":
                 progress.eval_rows.append({"step": global_step, **result, "feedback": progress.feedback_used,
                                            "wall_time": round(time.time() - start_time, 1),
                                            "overhead_seconds": round(progress.overhead_seconds, 1)})
-                with open(eval_path, "a", newline="") as f:
-                    csv.DictWriter(f, eval_fields).writerow(progress.eval_rows[-1])
+                save_file(eval_path, eval_csv(progress.eval_rows))
                 for name in ("episode_return", "success_rate", "reward_correlation"):
                     writer.add_scalar(f"eval/{name}", result[name], global_step)
             if time.time() - last_print > 10 or global_step == args.total_timesteps:

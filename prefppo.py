@@ -1,14 +1,10 @@
 # PrefPPO (Christiano et al. 2017, with PPO) as benchmarked by B-Pref (Lee et al. 2021); docs/prefppo.md
 import contextlib
-import csv
 import glob
-import importlib
 import io
-import itertools
 import json
 import math
 import os
-import shutil
 import signal
 import sys
 import time
@@ -24,7 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 import tyro
 
-from samplers import random_pairs, schedule_sizes, select
+from samplers import draw_segments, planned_labels, schedule_sizes, select
 from sim_teacher import make_teacher
 
 
@@ -139,8 +135,6 @@ class Args:
     """segments come from the last N complete episodes (0 = all so far, pre-training's too: reference code)"""
 
 
-
-
 # Paper appendix, table of PrefPPO hyperparameters (docs/prefppo.md lists the values the paper leaves open)
 DMC_PRESET = dict(total_timesteps=4_000_000, max_feedback=1000, feedback_per_session=100, feedback_every=32_000,
                   segment_len=50, learning_rate=5e-5, num_envs=32, num_steps=500, minibatch_size=64, gae_lambda=0.92,
@@ -194,24 +188,14 @@ class MetaWorldSeeding(gym.Wrapper):
 
 
 def env_kind(env_id: str) -> str:
-    """'dmc', 'metaworld' or 'gym' for a known id; ValueError otherwise."""
+    """'dmc' for a suite task (domain-task), 'metaworld' for a v3 task name (with or without -v3), else 'gym'."""
     import metaworld
 
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
     if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
-    if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
-        return "metaworld"
-    module, _, gym_id = env_id.rpartition(":")  # "my_package:MyEnv-v0" registers MyEnv-v0 on import
-    try:
-        importlib.import_module(module) if module else None
-    except ImportError as error:
-        raise ValueError(f"--env-id {env_id!r}: cannot import {module!r} ({error})") from None
-    if gym_id in gym.registry:
-        return "gym"
-    raise ValueError(f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), a Meta-World v3 task "
-                     "(e.g. button-press) or a registered Gymnasium id (optionally module:id)")
+    return "metaworld" if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS else "gym"
 
 
 def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]:
@@ -234,7 +218,11 @@ def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]
         env.unwrapped.seeded_rand_vec = True
         env, episode_len = MetaWorldSeeding(env), env.spec.max_episode_steps or 500
     else:
-        env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
+        try:  # "my_package:MyEnv-v0": Gymnasium imports my_package, which registers MyEnv-v0
+            env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
+        except (gym.error.Error, ImportError) as error:
+            raise ValueError(f"--env-id {env_id!r} is not a DMC task (domain-task, e.g. walker-walk), a Meta-World v3 "
+                             f"task (e.g. button-press) or a Gymnasium id (optionally module:id): {error}") from None
         episode_len = env.spec.max_episode_steps
         if not (isinstance(env.action_space, gym.spaces.Box) and isinstance(env.observation_space, gym.spaces.Box)
                 and episode_len):
@@ -254,8 +242,8 @@ def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
 
 
 def episode_seed(run_seed: int, stream: int, episode: int) -> int:
-    """The reset seed of episode `episode` of a stream: a 32-bit draw of SeedSequence([run_seed, stream, episode]),
-    so any episode can be played again alone, and runs with different seeds share no episode (up to chance)."""
+    """The reset seed of an episode of a stream, drawn from SeedSequence([run_seed, stream, episode]): any episode
+    can be played again alone, and runs with different seeds share no episode (up to chance)."""
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
 
 
@@ -452,6 +440,11 @@ class KnnStateEntropy:
         return distance / math.sqrt(self.stats.var[0] + 1e-8)
 
 
+def coverage_features(inputs0: torch.Tensor, inputs1: torch.Tensor, obs_dim: int) -> np.ndarray:
+    """Appendix, coverage sampling: the states of both segments of each query, flattened and concatenated."""
+    return torch.cat([inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)], 1).cpu().numpy()
+
+
 def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
     """Eq. (3): cross-entropy of P[sigma1 > sigma0] = softmax(sum r_hat) (Eq. (2)) against (1 - y, y), (batch, 2)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
@@ -465,9 +458,10 @@ def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple
     return int(((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5))[strict].sum()), int(strict.sum())
 
 
-def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs) -> tuple[float, float]:
-    """Algorithm 3, reward learning: up to max_epochs passes over D, one shuffle per member, until 97% accuracy."""
-    for _ in range(max_epochs):
+def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
+    """Algorithm 3, reward learning: up to --reward-epochs passes over D, one shuffle per member, until 97% accuracy."""
+    inputs0, inputs1, y = preferences["inputs0"], preferences["inputs1"], preferences["y"]
+    for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
         correct = counted = 0
         losses = []
@@ -487,17 +481,7 @@ def train_reward(reward_model, optimizer, inputs0, inputs1, y, args, max_epochs)
     return float(np.mean(losses)), accuracy
 
 
-def planned_labels(total_timesteps: int, pretrain_steps: int, feedback_every: int, session_sizes, rollout: int) -> int:
-    """How many labels the run asks for: sessions at rollout ends (multiples of `rollout` steps), the first at
-    or after pretrain_steps, each next one feedback_every or more steps later, while below total_timesteps.
-    Assumes a complete episode by the first session (a later first session asks fewer)."""
-    step, n_sessions = -(-pretrain_steps // rollout) * rollout, 0
-    while step < total_timesteps and n_sessions < len(session_sizes):
-        step, n_sessions = -(-(step + feedback_every) // rollout) * rollout, n_sessions + 1
-    return int(np.sum(session_sizes[:n_sessions]))
-
-
-# Plumbing: command line, files, evaluation, the loop's counters
+# Plumbing: command line, files, evaluation, the loop's state
 def fail(message: str, code: int = 2):
     print(f"error: {message}", file=sys.stderr)
     sys.exit(code)
@@ -510,9 +494,9 @@ def parse_args() -> Args:
         with contextlib.redirect_stderr(captured):
             args = tyro.cli(Args)
     except SystemExit as exit_:
-        if exit_.code:  # not --help
-            lines = [line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:]]  # the box's text
-            fail(" ".join(line for line in itertools.takewhile(lambda x: x[:1] != "─", lines) if line))
+        if exit_.code:  # not --help: the box's text up to its first rule
+            text = "\n".join(line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:])
+            fail(" ".join(text.split("\n─")[0].split()))
         raise
     sys.stderr.write(captured.getvalue())  # tyro's warnings, if any
     return args
@@ -575,8 +559,8 @@ def check_args(args: Args, episode_len: int):
 
 
 def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> dict:
-    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz) as
-    inputs0, inputs1 (obs and action per step), y and the coverage features."""
+    """--labels-from: the kept labels of saved sessions (a run directory, its labels/ or one .npz) as the labelled
+    dataset's inputs0, inputs1 (observation and action per step) and y."""
     files = [path] if os.path.isfile(path) else sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
                                                       or glob.glob(os.path.join(path, "session_*.npz")))
     sessions = [dict(np.load(file)) for file in files]
@@ -584,11 +568,10 @@ def load_labels(path: str, obs_dim: int, action_dim: int, segment_len: int) -> d
                            for s in sessions):
         raise ValueError(f"--labels-from {path!r}: no session_*.npz files, or segments that do not fit this run "
                          f"({segment_len} steps of {obs_dim} observations and {action_dim} actions)")
-    kept = {k: np.concatenate([s[k][s["keep"]] for s in sessions]) for k in ("obs0", "actions0", "obs1", "actions1")}
-    y = np.concatenate([s["y"][s["keep"]] for s in sessions]).astype(np.float32)
-    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1), "y": y,
-            "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1),
-            "features": np.concatenate([kept["obs0"].reshape(len(y), -1), kept["obs1"].reshape(len(y), -1)], 1)}
+    kept = {key: np.concatenate([s[key][s["keep"]] for s in sessions]) for key in ("obs0", "actions0", "obs1",
+                                                                                   "actions1", "y")}
+    return {"inputs0": np.concatenate([kept["obs0"], kept["actions0"]], -1),
+            "inputs1": np.concatenate([kept["obs1"], kept["actions1"]], -1), "y": kept["y"].astype(np.float32)}
 
 
 def save_file(path: str, data: bytes):
@@ -601,6 +584,16 @@ def save_file(path: str, data: bytes):
     finally:
         if os.path.exists(f"{path}.tmp"):
             os.remove(f"{path}.tmp")
+
+
+EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
+                "wall_time", "overhead_seconds")
+
+
+def eval_csv(rows: list[dict]) -> bytes:
+    """eval.csv, written whole after each evaluation (a resumed run writes its checkpoint's rows again: none twice)."""
+    lines = [EVAL_COLUMNS] + [[row[column] for column in EVAL_COLUMNS] for row in rows]
+    return "".join(",".join(map(str, line)) + "\n" for line in lines).encode()
 
 
 def evaluate(actor, obs_stats, reward_model, env, seeds: list[int], device) -> dict:
@@ -644,11 +637,13 @@ def projected_cpu_hours(args: Args, env: gym.Env, obs_dim: int) -> float:
 
 @dataclass
 class Progress:
-    """Every counter the main loop carries: a checkpoint saves asdict(progress), a resume restores
-    Progress(**saved), so a counter added here is checkpointed by construction."""
+    """What the main loop carries besides networks, optimizers and buffers: a checkpoint saves asdict(progress), a
+    resume restores Progress(**saved), so a field added here is checkpointed by construction."""
 
     global_step: int = 0
-    episodes: list[int] = field(default_factory=list)  # env i runs its episode number episodes[i]
+    episodes: list = field(default_factory=list)  # env i runs its episode number episodes[i]
+    current: list = field(default_factory=list)  # env i's running episode: observations, actions, true rewards so far
+    recent_returns: list = field(default_factory=list)  # true returns of the last 100 training episodes
     sessions_done: int = 0
     feedback_used: int = 0
     next_feedback_step: int = 0
@@ -675,9 +670,8 @@ if __name__ == "__main__":
         eval_env, _ = make_env(args.env_id, render_mode="rgb_array" if args.capture_video else None)
         obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
         check_args(args, episode_len)
-        imported = None
-        if args.labels_from and not args.resume:
-            imported = load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
+        imported = (load_labels(args.labels_from, obs_dim, action_dim, args.segment_len)
+                    if args.labels_from and not args.resume else None)
     except (ValueError, OSError, KeyError) as error:
         fail(str(error))
     if args.capture_video:  # render one frame now rather than fail at the first evaluation
@@ -717,7 +711,7 @@ if __name__ == "__main__":
         import wandb
 
         wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=config, name=run_name, save_code=True)
-    checkpoint_path = os.path.join(output_dir, "checkpoint.pt")
+    checkpoint_path, eval_path = os.path.join(output_dir, "checkpoint.pt"), os.path.join(output_dir, "eval.csv")
     checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False) if args.resume else None
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
@@ -736,28 +730,26 @@ if __name__ == "__main__":
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
     obs_stats, knn_reward = RunningMeanStd(obs_dim), KnnStateEntropy(obs_dim, args.knn_k, device)
-    learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "optimizer": optimizer,
-                "reward_optimizer": reward_optimizer}
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     rollout = args.num_envs * args.num_steps
-    spent = planned_labels(args.total_timesteps, args.unsup_steps, args.feedback_every, session_sizes, rollout)
+    spent = planned_labels(session_sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
     if spent < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "
               f"steps (sessions from step {args.unsup_steps}, every {args.feedback_every} steps, at rollout ends)")
-    preferences = {"inputs0": [], "inputs1": [], "y": [], "features": []}  # the labelled dataset D, per session
-    if imported:  # earlier labels: free, not counted in this run's budget
-        for key, value in imported.items():
-            preferences[key].append(torch.as_tensor(value, device=device) if key != "features" else value)
+    # The labelled dataset D: both segments' (observation, action) per step, and the label (--labels-from's are free)
+    empty = np.zeros((0, args.segment_len, obs_dim + action_dim), np.float32)
+    preferences = imported or {"inputs0": empty, "inputs1": empty, "y": np.zeros(0, np.float32)}
+    preferences = {key: torch.as_tensor(value, device=device) for key, value in preferences.items()}
+    if imported:
         print(f"--labels-from: {len(imported['y'])} labels from {args.labels_from}")
-    # The complete episodes that segments come from, raw (obs, actions, true rewards): the last
-    # query_recent_episodes, or all (reference code: add_data_batch never trims; 4M walker steps: 0.5 GB)
-    episodes = deque(maxlen=args.query_recent_episodes or None)
-    current = [([], [], []) for _ in range(args.num_envs)]  # each env's running episode
-    recent_returns = deque(maxlen=100)  # of training episodes: the teacher's adaptive thresholds
-    progress = Progress(episodes=[0] * args.num_envs, next_feedback_step=args.unsup_steps,
-                        next_checkpoint_step=args.checkpoint_every)
+    # The query pool: the last query_recent_episodes complete episodes, (observations, actions, true rewards) each
+    episodes = deque(maxlen=args.query_recent_episodes or None)  # (reference code: all, add_data_batch never trims)
+    progress = Progress(episodes=[0] * args.num_envs, current=[([], [], []) for _ in range(args.num_envs)],
+                        next_feedback_step=args.unsup_steps, next_checkpoint_step=args.checkpoint_every)
+    learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "optimizer": optimizer,
+                "reward_optimizer": reward_optimizer}
     if checkpoint:  # --resume: every part back, key by key
         progress = Progress(**checkpoint["progress"])
         print(f"resuming from the checkpoint at step {progress.global_step}")
@@ -766,32 +758,23 @@ if __name__ == "__main__":
         vars(obs_stats).update(checkpoint["obs_stats"])
         knn_reward.states = checkpoint["knn_states"].to(device)
         vars(knn_reward.stats).update(checkpoint["knn_stats"])
-        preferences = {key: [v.to(device) if torch.is_tensor(v) else v for v in values]
-                       for key, values in checkpoint["preferences"].items()}
-        teacher, rng, current = checkpoint["teacher"], checkpoint["rng"], checkpoint["current"]
+        preferences = {key: value.to(device) for key, value in checkpoint["preferences"].items()}
+        teacher, rng = checkpoint["teacher"], checkpoint["rng"]
+        episodes.extend(checkpoint["episodes"])
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
-        episodes.extend(checkpoint["episodes"])
-        recent_returns.extend(checkpoint["recent_returns"])
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {output_dir!r} has already finished ({progress.global_step} steps)")
         aside = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
         for path in sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))[progress.sessions_done:]:
             os.makedirs(aside, exist_ok=True)  # asked after the checkpoint: kept aside, the run asks them again
-            shutil.move(path, aside)
-    eval_path, eval_fields = os.path.join(output_dir, "eval.csv"), ["step", "episode_return", "episode_return_std",
-                                                                    "success_rate", "feedback", "reward_correlation",
-                                                                    "wall_time", "overhead_seconds"]
-    with open(f"{eval_path}.tmp", "w", newline="") as f:  # rows logged after the checkpoint are dropped
-        csv.DictWriter(f, eval_fields).writeheader()
-        csv.DictWriter(f, eval_fields).writerows(progress.eval_rows)
-    os.replace(f"{eval_path}.tmp", eval_path)
+            os.replace(path, os.path.join(aside, os.path.basename(path)))
     # Each env at the start of its running episode (that episode's seed), then that episode's actions so far again:
     # MuJoCo is deterministic, so a resumed env is exactly where it was (a new run has no actions to replay)
     raw_obs = np.stack([e.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes[i] * args.num_envs + i))[0]
                         for i, e in enumerate(envs)])  # episode j of env i: number j * num_envs + i of the stream
-    for i, action in ((i, action) for i in range(args.num_envs) for action in current[i][1]):
+    for i, action in ((i, action) for i in range(args.num_envs) for action in progress.current[i][1]):
         raw_obs[i] = envs[i].step(action)[0]
     if args.capture_video:  # the first episode of each evaluation: videos/step_N-episode-M.mp4
         eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(output_dir, "videos"),
@@ -808,76 +791,65 @@ if __name__ == "__main__":
 
     def checkpoint_state() -> dict:
         """Everything the run needs to go on exactly after this rollout, but the envs (each reset with its episode's
-        seed, then replaying `current`) and gSDE's matrices (each rollout draws new ones)."""
+        seed, then the episode's actions replayed) and gSDE's matrices (each rollout draws new ones)."""
         return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
                 **{name: part.state_dict() for name, part in learners.items()}, "obs_stats": vars(obs_stats),
                 "knn_states": knn_reward.states.cpu(), "knn_stats": vars(knn_reward.stats), "preferences": preferences,
-                "teacher": teacher, "rng": rng, "torch_rng": torch.get_rng_state(),
-                "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None,
-                "episodes": list(episodes), "current": current, "recent_returns": list(recent_returns)}
+                "teacher": teacher, "rng": rng, "episodes": list(episodes), "torch_rng": torch.get_rng_state(),
+                "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
 
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (pre-training) for the first unsup_steps
     try:
+        save_file(eval_path, eval_csv(progress.eval_rows))  # a resumed run drops the rows after its checkpoint
         while progress.global_step < args.total_timesteps:
-            step = progress.global_step
-            progress.reward_ready |= args.ground_truth_reward and step >= args.unsup_steps
+            global_step = progress.global_step
+            progress.reward_ready |= args.ground_truth_reward and global_step >= args.unsup_steps
             # Feedback session (Algorithm 3, reward learning) at a rollout's end: the first after pre-training,
             # then every feedback_every steps. SAMPLE() queries, ask SimTeacher, save the labels, learn r_hat
-            if (not args.ground_truth_reward and step >= progress.next_feedback_step
+            if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
                     and progress.sessions_done < len(session_sizes)
-                    and any(len(e[2]) >= args.segment_len for e in episodes)):
-                session_start, size = time.perf_counter(), int(session_sizes[progress.sessions_done])
-                usable = [e for e in episodes if len(e[2]) >= args.segment_len]
-                sampler = args.sampler if progress.reward_ready else "uniform"  # the first: uniform (reference code)
-                n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
-                e0, s0, e1, s1 = random_pairs([len(e[2]) for e in usable], args.segment_len, n_candidates, rng)
-                window = np.arange(args.segment_len)
-                obs0, act0, true0 = (np.stack([usable[e][i][s + window] for e, s in zip(e0, s0)]) for i in range(3))
-                obs1, act1, true1 = (np.stack([usable[e][i][s + window] for e, s in zip(e1, s1)]) for i in range(3))
-                inputs0 = torch.as_tensor(np.concatenate([obs0, act0], -1), device=device)
-                inputs1 = torch.as_tensor(np.concatenate([obs1, act1], -1), device=device)
-                # appendix: both segments' states concatenated, for the coverage samplers
-                features = np.concatenate([obs0.reshape(len(obs0), -1), obs1.reshape(len(obs1), -1)], axis=1)
-                chosen = np.arange(size)  # uniform: random_pairs drew `size` uniform pairs
-                if sampler != "uniform":
-                    with torch.no_grad():
-                        probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))[..., 0]
-                    labelled = np.concatenate(preferences["features"]) if preferences["features"] else None
-                    chosen = select(sampler, size, probs=probs.cpu().numpy(), features=features,
-                                    labeled_features=labelled, rng=rng)
-                obs0, obs1, act0, act1, true0, true1 = (x[chosen] for x in (obs0, obs1, act0, act1, true0, true1))
-                # Appendix, adaptive thresholds: mean true return of the last 100 training episodes (reference code)
-                teacher.set_thresholds(float(np.mean(recent_returns)), args.segment_len, episode_len)
-                y, keep = teacher.label(true0, true1)
-                np.savez(data := io.BytesIO(), step=step, obs0=obs0, actions0=act0, obs1=obs1, actions1=act1,
-                         rewards0=true0, rewards1=true1, y=y, keep=keep)
-                save_file(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
-                          data.getvalue())
-                progress.feedback_used += size
-                progress.sessions_done += 1
-                progress.next_feedback_step = step + args.feedback_every
-                kept = chosen[keep]
-                preferences["inputs0"].append(inputs0[kept])
-                preferences["inputs1"].append(inputs1[kept])
-                preferences["y"].append(torch.as_tensor(y[keep], dtype=torch.float32, device=device))
-                preferences["features"] += [features[kept]] if args.sampler.endswith("coverage") else []
-                for name, value in [("labels", progress.feedback_used), ("skipped", (~keep).sum()),
-                                    ("equal", (y[keep] == 0.5).sum())]:
-                    writer.add_scalar(f"feedback/{name}", int(value), step)
-                n_labels = sum(len(p) for p in preferences["y"])
-                if n_labels == 0:  # every query so far was skipped: nothing to learn from yet
-                    print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
-                else:
-                    loss, accuracy = train_reward(reward_model, reward_optimizer, torch.cat(preferences["inputs0"]),
-                                                  torch.cat(preferences["inputs1"]), torch.cat(preferences["y"]),
-                                                  args, args.reward_epochs)
-                    progress.reward_ready = True
-                    writer.add_scalar("reward/loss", loss, step)
-                    writer.add_scalar("reward/accuracy", accuracy, step)
-                    print(f"step {step}: feedback session {progress.sessions_done}: {size} queries ({(~keep).sum()} "
-                          f"skipped, {(y[keep] == 0.5).sum()} equal), reward model trained on {n_labels} labels, "
-                          f"accuracy {accuracy:.3f}")
-                progress.overhead_seconds += time.perf_counter() - session_start
+                    and any(len(episode[0]) >= args.segment_len for episode in episodes)):
+                with progress.overhead():
+                    size = int(session_sizes[progress.sessions_done])
+                    sampler = args.sampler if progress.reward_ready else "uniform"  # the first: uniform (reference)
+                    n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
+                    candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
+                    sides = [np.concatenate([candidates[f"obs{i}"], candidates[f"actions{i}"]], -1) for i in (0, 1)]
+                    inputs0, inputs1 = (torch.as_tensor(side, device=device) for side in sides)  # (s, a) per step
+                    chosen = np.arange(size)  # uniform: `size` uniform pairs were drawn
+                    if sampler != "uniform":
+                        with torch.no_grad():
+                            probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))[..., 0]
+                        labelled = (coverage_features(preferences["inputs0"], preferences["inputs1"], obs_dim)
+                                    if sampler.endswith("coverage") else None)
+                        chosen = select(sampler, size, probs=probs.cpu().numpy(), rng=rng, labeled_features=labelled,
+                                        features=coverage_features(inputs0, inputs1, obs_dim))
+                    segments = {key: value[chosen] for key, value in candidates.items()}
+                    # Appendix, adaptive thresholds: mean true return of the last 100 training episodes (reference code)
+                    teacher.set_thresholds(float(np.mean(progress.recent_returns)), args.segment_len, episode_len)
+                    y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
+                    np.savez(data := io.BytesIO(), step=global_step, y=y, keep=keep, **segments)
+                    save_file(os.path.join(output_dir, "labels", f"session_{progress.sessions_done:04d}.npz"),
+                              data.getvalue())
+                    progress.feedback_used += size
+                    progress.sessions_done += 1
+                    progress.next_feedback_step = global_step + args.feedback_every
+                    new = {"inputs0": inputs0[chosen[keep]], "inputs1": inputs1[chosen[keep]],
+                           "y": torch.as_tensor(y[keep], dtype=torch.float32, device=device)}
+                    preferences = {key: torch.cat([preferences[key], new[key]]) for key in preferences}
+                    skipped, equal, n_labels = (~keep).sum(), (y[keep] == 0.5).sum(), len(preferences["y"])
+                    for name, value in [("labels", progress.feedback_used), ("skipped", skipped), ("equal", equal)]:
+                        writer.add_scalar(f"feedback/{name}", int(value), global_step)
+                    if n_labels == 0:  # every query so far was skipped: nothing to learn from yet
+                        print(f"step {global_step}: all {size} queries skipped, the reward model stays as it is")
+                    else:
+                        loss, accuracy = train_reward(reward_model, reward_optimizer, preferences, args)
+                        progress.reward_ready = True
+                        writer.add_scalar("reward/loss", loss, global_step)
+                        writer.add_scalar("reward/accuracy", accuracy, global_step)
+                        print(f"step {global_step}: feedback session {progress.sessions_done}: {size} queries "
+                              f"({skipped} skipped, {equal} equal), reward model trained on {n_labels} labels, "
+                              f"accuracy {accuracy:.3f}")
             if progress.reward_ready and progress.counts["value_resets"] == 0:  # the end of pre-training: a new value
                 reset_value_head(critic)  # head
                 progress.counts["value_resets"] += 1
@@ -900,14 +872,15 @@ if __name__ == "__main__":
                     if not (np.isfinite(true_reward[i]) and np.isfinite(final_obs[i]).all()):
                         raise FloatingPointError(f"non-finite reward ({true_reward[i]}) or observation from the "
                                                  "environment")
-                    for part, value in zip(current[i], (raw_obs[i], env_action_np[i], true_reward[i])):
+                    for part, value in zip(progress.current[i], (raw_obs[i], env_action_np[i], true_reward[i])):
                         part.append(value)
                     next_raw_obs[i] = final_obs[i]
                     if terminated[i] or truncated[i]:  # final_obs[i] stays the episode's real last state
-                        episodes.append(tuple(np.array(part, dtype=np.float32) for part in current[i]))
-                        recent_returns.append(float(sum(current[i][2])))
-                        writer.add_scalar("charts/episodic_return", recent_returns[-1], step + t * args.num_envs)
-                        current[i], progress.episodes[i] = ([], [], []), progress.episodes[i] + 1
+                        episodes.append(tuple(np.array(part, dtype=np.float32) for part in progress.current[i]))
+                        episode_return = float(sum(progress.current[i][2]))
+                        progress.recent_returns = (progress.recent_returns + [episode_return])[-100:]
+                        writer.add_scalar("charts/episodic_return", episode_return, global_step + t * args.num_envs)
+                        progress.current[i], progress.episodes[i] = ([], [], []), progress.episodes[i] + 1
                         seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes[i] * args.num_envs + i)
                         next_raw_obs[i] = train_env.reset(seed=seed)[0]
                 raw_obs_buf[t], obs_buf[t], actions_buf[t] = torch.as_tensor(raw_obs), obs, action
@@ -956,8 +929,7 @@ if __name__ == "__main__":
                 progress.eval_rows.append({"step": progress.global_step, **result, "feedback": progress.feedback_used,
                                            "wall_time": round(time.time() - start_time, 1),
                                            "overhead_seconds": round(progress.overhead_seconds, 1)})
-                with open(eval_path, "a", newline="") as f:
-                    csv.DictWriter(f, eval_fields).writerow(progress.eval_rows[-1])
+                save_file(eval_path, eval_csv(progress.eval_rows))
                 for name in ("episode_return", "success_rate", "reward_correlation"):
                     writer.add_scalar(f"eval/{name}", result[name], progress.global_step)
             if time.time() - last_print > 10 or progress.global_step >= args.total_timesteps:

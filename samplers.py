@@ -2,8 +2,10 @@
 paper Section 4.2 and appendix "Sampling schemes". Arrays in, arrays out: no torch, no environment.
 
     e0, s0, e1, s1 = random_pairs(episode_lengths, segment_len=50, n_pairs=1000, rng=rng)
+    candidates = draw_segments(episodes, segment_len=50, n_pairs=1000, rng=rng)  # episodes: (obs, actions, rewards)
     chosen = select("disagreement", 100, probs=probs)  # probs (E, M): member i's P[sigma1 > sigma0]
     sizes = schedule_sizes("decay", budget=1000, per_session=100)
+    labels = planned_labels(sizes, first_step=10_001, every=20_000, last_step=500_000)
 """
 
 import numpy as np
@@ -100,9 +102,8 @@ def select(
     if labeled_features is not None:
         labeled_features = np.asarray(labeled_features)
         if features is None or labeled_features.ndim != 2 or labeled_features.shape[1] != features.shape[1]:
-            raise ValueError(
-                f"labeled_features must be 2-D with the feature dimension of features, got shape {labeled_features.shape}"
-            )
+            raise ValueError("labeled_features must be 2-D with the feature dimension of features, got shape "
+                             f"{labeled_features.shape}")
     if probs is None and features is None:
         raise ValueError("select needs probs or features to know the candidates")
     n_candidates = probs.shape[1] if probs is not None else len(features)
@@ -159,6 +160,16 @@ def schedule_sizes(name: str, budget: int, per_session: int) -> np.ndarray:
     return np.array(sizes, dtype=np.int64)
 
 
+def planned_labels(session_sizes, first_step: int, every: int, last_step: int, granularity: int = 1) -> int:
+    """How many labels a run asks for: its sessions come at first_step, then `every` or more steps after the one
+    before, each at the next multiple of `granularity` steps (a rollout; 1: at any step), up to last_step, while
+    the schedule lasts. Assumes a complete episode at the first session (a later first session asks fewer)."""
+    step, n_sessions = -(-first_step // granularity) * granularity, 0
+    while step <= last_step and n_sessions < len(session_sizes):
+        step, n_sessions = -(-(step + every) // granularity) * granularity, n_sessions + 1
+    return int(np.sum(session_sizes[:n_sessions]))
+
+
 def random_pairs(
     episode_lengths, segment_len: int, n_pairs: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -192,3 +203,14 @@ def random_pairs(
         return episode, flat - (ends[episode] - positions_per_episode[episode])
 
     return (*to_episode_start(first), *to_episode_start(second))
+
+
+def draw_segments(episodes, segment_len: int, n_pairs: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """n_pairs candidate pairs (random_pairs) cut from stored episodes, each a tuple of per-step arrays (observations,
+    actions, true rewards) of one length: {"obs0", "actions0", "rewards0", "obs1", "actions1", "rewards1"}, each of
+    shape (n_pairs, segment_len, ...); side 0 is sigma0, side 1 sigma1."""
+    e0, s0, e1, s1 = random_pairs([len(episode[0]) for episode in episodes], segment_len, n_pairs, rng)
+    window = np.arange(segment_len)
+    return {f"{key}{side}": np.stack([episodes[e][part][s + window] for e, s in zip(es, ss)])
+            for side, (es, ss) in enumerate(((e0, s0), (e1, s1)))
+            for part, key in enumerate(("obs", "actions", "rewards"))}

@@ -69,9 +69,8 @@ class SimTeacher:
         rewards0 = np.asarray(rewards0, dtype=np.float64)
         rewards1 = np.asarray(rewards1, dtype=np.float64)
         if rewards0.ndim != 2 or rewards0.shape != rewards1.shape:
-            raise ValueError(
-                f"rewards0 and rewards1 must be 2-D arrays (N, H) of one shape, got {rewards0.shape} and {rewards1.shape}"
-            )
+            raise ValueError("rewards0 and rewards1 must be 2-D arrays (N, H) of one shape, got "
+                             f"{rewards0.shape} and {rewards1.shape}")
         n = len(rewards0)
         if self.eps_skip > 0 or self.eps_equal > 0 or self.gamma == 1.0:  # undiscounted returns
             returns0, returns1 = rewards0.sum(axis=1), rewards1.sum(axis=1)

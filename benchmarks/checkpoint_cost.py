@@ -27,7 +27,7 @@ if __name__ == "__main__":
     env, _ = pebble.make_env("walker-walk")
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     buffer = pebble.ReplayBuffer(args.transitions, obs_dim, action_dim, "cpu")
-    for name in pebble.ReplayBuffer.fields:
+    for name in pebble.Batch._fields:
         getattr(buffer, name).normal_()
     buffer.size = args.transitions
     networks = {"actor": pebble.Actor(obs_dim, action_dim, 1024, 2),

@@ -74,14 +74,15 @@ def sac_step_seconds(hidden, layers, batch, updates) -> float:
 def reward_unit_costs(repeats) -> dict:
     model = pebble.RewardEnsemble(OBS_DIM, ACTION_DIM, ENSEMBLE)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-4)
-    config = SimpleNamespace(reward_batch_size=128, label_smoothing=0.0)
+    config = SimpleNamespace(reward_batch_size=128, label_smoothing=0.0, reward_epochs=1)
     width = OBS_DIM + ACTION_DIM
     costs = {}
     labels = 500
     inputs0, inputs1 = torch.randn(labels, SEGMENT_LEN, width), torch.randn(labels, SEGMENT_LEN, width)
     y = torch.randint(0, 2, (labels,)).float()
     costs["epoch_per_label"] = median_seconds(
-        lambda: pebble.train_reward(model, optimizer, inputs0, inputs1, y, config, max_epochs=1), repeats) / labels
+        lambda: pebble.train_reward(model, optimizer, {"inputs0": inputs0, "inputs1": inputs1, "y": y}, config),
+        repeats) / labels
     transitions = 100_000
     buffer = pebble.ReplayBuffer(transitions, OBS_DIM, ACTION_DIM, "cpu")
     buffer.obs.normal_(), buffer.actions.uniform_(-1, 1)

@@ -104,7 +104,7 @@ def sac_variants(hidden, layers, batch, device, env_steps: bool):
         nonlocal obs
         action = rng.uniform(-1, 1, action_dim).astype(np.float32)
         next_obs, reward, terminated, truncated, _ = env.step(action)
-        buffer.add(obs, action, reward, reward, next_obs, terminated)
+        buffer.add(obs, action, reward, next_obs, terminated)
         obs = env.reset(seed=int(rng.integers(2**31)))[0] if terminated or truncated else next_obs
 
     for _ in range(10_000):

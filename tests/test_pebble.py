@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import pebble
-from samplers import SAMPLERS, SCHEDULES, schedule_sizes
+from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes
 from sim_teacher import TEACHERS, make_teacher
 from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
                            session_lines, start_script)
@@ -102,7 +102,7 @@ def test_intrinsic_reward_scores_the_batch_state_s_t_not_the_next_state():
     buffer = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1, device="cpu")
     trajectory = [0.0, 1.0, 3.0, 6.0, 10.0, 15.0]  # s_0 .. s_5: transitions (s_t, s_t+1), s_5 never stored as obs
     for s, s_next in zip(trajectory, trajectory[1:]):
-        buffer.add(np.array([s], np.float32), np.zeros(1, np.float32), 0.0, 0.0, np.array([s_next], np.float32), False)
+        buffer.add(np.array([s], np.float32), np.zeros(1, np.float32), 0.0, np.array([s_next], np.float32), False)
     # k = 2 among the stored states {0, 1, 3, 6, 10}, the state's own zero distance skipped (as in the test above)
     expected = {0.0: 3.0, 1.0: 2.0, 3.0: 3.0, 6.0: 4.0, 10.0: 7.0}
     # scoring next_obs would give 2, 3, 4, 7 for these states and 12 for s_4 (s_5 = 15 is not in the buffer)
@@ -171,25 +171,15 @@ def test_episode_seeds_differ_between_run_seeds_streams_and_episodes():
     assert pebble.episode_seed(1, 0, 7) == pebble.episode_seed(1, 0, 7)  # reproducible
 
 
-def test_planned_labels_counts_the_sessions_that_fit_before_the_end():
-    sizes = np.array([5, 5, 5, 5, 5])
-    # sessions at steps 11, 41, 71 (101 is past the end): 3 x 5
-    assert pebble.planned_labels(100, 10, 30, sizes) == 15
-    assert pebble.planned_labels(71, 10, 30, sizes) == 15  # a session on the last step still happens
-    assert pebble.planned_labels(70, 10, 30, sizes) == 10
-    assert pebble.planned_labels(10_000, 10, 30, sizes) == 25  # never more than the schedule's budget
-    assert pebble.planned_labels(100, 10, 30, np.array([8, 4, 2, 1])) == 14  # a decaying schedule: its first 3
-
-
 @pytest.mark.parametrize("schedule", ["uniform", "decay", "increase"])
 def test_presets_spend_their_whole_budget(schedule):
-    pretrain = pebble.Args.seed_steps + pebble.Args.unsup_steps
+    first = pebble.Args.seed_steps + pebble.Args.unsup_steps + 1  # pebble's first session: right after pre-training
     for preset in (pebble.METAWORLD_PRESET, pebble.DMC_PRESET, pebble.PRESETS["quadruped-walk"]):
         sizes = schedule_sizes(schedule, preset["max_feedback"], preset["feedback_per_session"])
-        spent = pebble.planned_labels(preset["total_timesteps"], pretrain, preset["feedback_every"], sizes)
+        spent = planned_labels(sizes, first, preset["feedback_every"], preset["total_timesteps"])
         assert spent == preset["max_feedback"]  # Meta-World: 10,000 in 200 sessions; walker-walk: 1000
     # the paper's (and reference code's) every 5000 steps on Meta-World: 198 sessions of 50 fit in 1M steps
-    assert pebble.planned_labels(1_000_000, pretrain, 5000, schedule_sizes("uniform", 10_000, 50)) == 9900
+    assert planned_labels(schedule_sizes("uniform", 10_000, 50), first, 5000, 1_000_000) == 9900
 
 
 def reset_draws(env, n: int, seed: int = 1, stream: int = pebble.TRAIN_STREAM) -> np.ndarray:
@@ -237,7 +227,7 @@ def test_relabel_covers_the_whole_wrapped_buffer():
     torch.manual_seed(0)
     buffer = pebble.ReplayBuffer(capacity=10, obs_dim=3, action_dim=2, device="cpu")
     for i in range(25):  # wraps twice; the write position ends at 5
-        buffer.add(np.full(3, i, np.float32), np.full(2, -i, np.float32), 123.0, 0.0, np.zeros(3, np.float32), False)
+        buffer.add(np.full(3, i, np.float32), np.full(2, -i, np.float32), 123.0, np.zeros(3, np.float32), False)
     model = pebble.RewardEnsemble(3, 2, size=3)
     pebble.relabel(buffer, model, chunk=4)
     expected = model(torch.cat([buffer.obs, buffer.actions], dim=-1)).mean(0)
@@ -285,8 +275,9 @@ def test_train_reward_learns_a_separable_preference():
     y = (inputs1[..., 0].sum(1) > inputs0[..., 0].sum(1)).float()  # true reward: the first feature
     model = pebble.RewardEnsemble(obs_dim=2, action_dim=2, size=3)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
-    args = pebble.Args(reward_batch_size=64)
-    _, accuracy = pebble.train_reward(model, optimizer, inputs0, inputs1, y, args, max_epochs=30)
+    args = pebble.Args(reward_batch_size=64, reward_epochs=30)
+    preferences = {"inputs0": inputs0, "inputs1": inputs1, "y": y}
+    _, accuracy = pebble.train_reward(model, optimizer, preferences, args)
     assert accuracy > 0.9
     with torch.no_grad():
         held_out = torch.tensor(rng.normal(size=(200, 1, 4)), dtype=torch.float32)

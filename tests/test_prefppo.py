@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import prefppo
+from samplers import planned_labels, schedule_sizes
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
 from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
                            session_lines, start_script)
@@ -295,11 +296,13 @@ def test_query_sampler_and_teacher_draw_independent_streams():
     assert not np.array_equal(np.random.default_rng(sampler_seed).random(8), teacher.rng.random(8))
 
 
-def test_planned_labels_counts_the_sessions_that_fit_at_rollout_ends():
-    sizes = np.full(10, 100)
-    assert prefppo.planned_labels(4_000_000, 32_000, 32_000, sizes, 16_000) == 1000  # the DMC preset: all fit
-    # rollouts of 3000 steps: sessions at 33000 (the first rollout end >= 32000), 66000, 99000 (< 100000)
-    assert prefppo.planned_labels(100_000, 32_000, 32_000, sizes, 3000) == 300
+@pytest.mark.parametrize("env_id", ["walker-walk", "quadruped-walk", "button-press", "sweep-into"])
+def test_presets_spend_their_whole_budget_at_rollout_ends(env_id):
+    args = prefppo.resolve(prefppo.Args(env_id=env_id))
+    sizes = schedule_sizes("uniform", args.max_feedback, args.feedback_per_session)
+    rollout = args.num_envs * args.num_steps  # prefppo's sessions: at rollout ends, from the end of pre-training
+    assert planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout) == \
+        args.max_feedback
 
 
 # ---------------------------------------------------------------- smoke runs

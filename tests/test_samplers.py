@@ -10,7 +10,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from samplers import SAMPLERS, SCHEDULES, random_pairs, schedule_sizes, select  # noqa: E402
+from samplers import (SAMPLERS, SCHEDULES, draw_segments, planned_labels, random_pairs, schedule_sizes,  # noqa: E402
+                      select)
 
 
 def binary_entropy(p):
@@ -506,6 +507,42 @@ def test_random_pairs_needs_two_distinct_positions(lengths):
 # --------------------------------------------------------------------------------------------
 # Validation
 # --------------------------------------------------------------------------------------------
+
+
+def test_draw_segments_cuts_the_drawn_windows_out_of_every_part_of_the_episodes():
+    # episode e: observations 100 e + t (one feature), actions -(100 e + t), true rewards 1000 e + t
+    episodes = [(100.0 * e + np.arange(n)[:, None], -(100.0 * e + np.arange(n)[:, None]), 1000.0 * e + np.arange(n))
+                for e, n in enumerate([60, 5, 80])]  # the middle one is shorter than a segment: never drawn
+    segments = draw_segments(episodes, 10, 500, np.random.default_rng(3))
+    e0, s0, e1, s1 = random_pairs([60, 5, 80], 10, 500, np.random.default_rng(3))  # the same draws
+    window = np.arange(10)
+    for side, (e, s) in enumerate(((e0, s0), (e1, s1))):
+        start = 100 * e + s
+        np.testing.assert_array_equal(segments[f"obs{side}"][..., 0], start[:, None] + window)
+        np.testing.assert_array_equal(segments[f"actions{side}"][..., 0], -(start[:, None] + window))
+        np.testing.assert_array_equal(segments[f"rewards{side}"], (1000 * e + s)[:, None] + window)
+    assert segments["obs0"].shape == (500, 10, 1) and segments["rewards1"].shape == (500, 10)
+    assert 1 not in set(e0) | set(e1)
+
+
+def test_planned_labels_counts_the_sessions_that_fit_before_the_last_step():
+    sizes = np.array([5, 5, 5, 5, 5])
+    # sessions at steps 11, 41, 71 (101 is past the end): 3 x 5
+    assert planned_labels(sizes, 11, 30, 100) == 15
+    assert planned_labels(sizes, 11, 30, 71) == 15  # a session on the last step still happens
+    assert planned_labels(sizes, 11, 30, 70) == 10
+    assert planned_labels(sizes, 11, 30, 10_000) == 25  # never more than the schedule's budget
+    assert planned_labels(np.array([8, 4, 2, 1]), 11, 30, 100) == 14  # a decaying schedule: its first 3
+    assert planned_labels(sizes, 11, 30, 10) == 0  # the run ends before the first session
+
+
+def test_planned_labels_at_rollout_ends_rounds_each_session_up_to_a_multiple():
+    sizes = np.full(10, 100)
+    # rollouts of 3000 steps: sessions at 33000 (the first rollout end >= 32000), 66000 (>= 33000 + 32000),
+    # 99000; the next, 132000, is past the last step
+    assert planned_labels(sizes, 32_000, 32_000, 99_999, granularity=3000) == 300
+    assert planned_labels(sizes, 32_000, 32_000, 98_999, granularity=3000) == 200
+    assert planned_labels(sizes, 32_000, 32_000, 3_999_999, granularity=16_000) == 1000  # all ten fit
 
 
 def test_unknown_sampler_raises_and_lists_known_ones():
