@@ -325,11 +325,12 @@ def temperature_loss(log_alpha, log_prob, target_entropy: float) -> torch.Tensor
 
 
 def optimize(optimizer, loss: torch.Tensor, name: str):
-    """One gradient step; a non-finite loss stops the run before it (FloatingPointError): the networks stay finite."""
+    """One gradient step; a non-finite loss stops the run before it (FloatingPointError): the networks stay finite.
+    Backward computes the gradients of this optimizer's parameters only (the actor's loss: not the critics')."""
     if not torch.isfinite(loss).all():
         raise FloatingPointError(f"non-finite {name} ({loss.detach().flatten()[0].item()})")
     optimizer.zero_grad()
-    loss.backward()
+    loss.backward(inputs=[param for group in optimizer.param_groups for param in group["params"]])
     optimizer.step()
 
 
@@ -431,10 +432,10 @@ def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smooth
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
-def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[int, int]:
+def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(correct, counted) over strict labels: an equal label has no right side (the reference code counted it)."""
     strict = y != 0.5
-    return int(((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5))[strict].sum()), int(strict.sum())
+    return (((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5)) & strict).sum(), strict.sum()
 
 
 def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
@@ -442,8 +443,7 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
     inputs0, inputs1, y = preferences["inputs0"], preferences["inputs1"], preferences["y"]
     for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
-        correct = counted = 0
-        losses = []
+        correct = counted = loss_sum = torch.zeros((), device=y.device)  # summed on the device: one sync an epoch
         for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
@@ -453,11 +453,11 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
                 c, m = preference_accuracy(returns.detach(), y[idx])
                 correct, counted = correct + c, counted + m
             optimize(optimizer, loss, "reward-model loss")
-            losses.append(loss.item() / len(reward_model.members))
-        accuracy = correct / counted if counted else float("nan")
+            loss_sum = loss_sum + loss.detach() / len(reward_model.members)
+        accuracy = correct.item() / counted.item() if counted else float("nan")
         if accuracy > 0.97:
             break
-    return float(np.mean(losses)), accuracy
+    return (loss_sum / -(-len(y) // args.reward_batch_size)).item(), accuracy
 
 
 # Plumbing: command line, files, evaluation, the loop's state
@@ -847,8 +847,8 @@ if __name__ == "__main__":
                 raise FloatingPointError(f"non-finite reward ({true_reward}) or observation from the environment")
             reward = float(true_reward) if args.ground_truth_reward else 0.0
             if progress.reward_ready and not args.ground_truth_reward:  # Algorithm 3: store r_hat(s_t, a_t)
-                with progress.overhead(), torch.no_grad():
-                    reward = reward_model(torch.as_tensor(np.concatenate([obs, action]), device=device)).mean().item()
+                with progress.overhead(), torch.no_grad():  # a tensor on the device: no host sync
+                    reward = reward_model(torch.as_tensor(np.concatenate([obs, action]), device=device)).mean()
             buffer.add(obs, action, reward, next_obs, terminated)
             for part, value in zip(progress.current, (obs, action, true_reward)):
                 part.append(value)

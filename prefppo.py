@@ -291,9 +291,10 @@ class Actor(nn.Module):
         """pi(. | s) and the latent."""
         latent = self.policy[:-1](obs)
         if self.use_sde:
-            return torch.distributions.Normal(self.policy[-1](latent), sde_std(latent.detach(), self.log_std)), latent
+            std = sde_std(latent.detach(), self.log_std)
+            return torch.distributions.Normal(self.policy[-1](latent), std, validate_args=False), latent
         mean = self.policy[-1](latent)
-        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean)), latent
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean), validate_args=False), latent
 
     def sample(self, obs, step: int, sde_freq: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Actions and log-probabilities at step `step` of a rollout. gSDE draws each env's W_n at the rollout's
@@ -356,36 +357,43 @@ def ppo_value_loss(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
 
 def optimize(optimizer, loss: torch.Tensor, name: str, max_grad_norm: float | None = None):
     """One gradient step, the gradients clipped to max_grad_norm; a non-finite loss stops the run before it
-    (FloatingPointError): the networks stay finite."""
+    (FloatingPointError): the networks stay finite. Backward computes the gradients of this optimizer's parameters."""
     if not torch.isfinite(loss).all():
         raise FloatingPointError(f"non-finite {name} ({loss.detach().flatten()[0].item()})")
     optimizer.zero_grad()
-    loss.backward()
+    loss.backward(inputs=(params := [param for group in optimizer.param_groups for param in group["params"]]))
     if max_grad_norm is not None:
-        nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]], max_grad_norm)
+        nn.utils.clip_grad_norm_(params, max_grad_norm)
     optimizer.step()
 
 
-def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optimizer, epochs, clip, args) -> dict:
-    """PPO's update of a rollout (appendix Eqs. (4)-(5)): `epochs` passes in shuffled minibatches, each one step on
-    the clipped surrogate + vf_coef x the value loss - ent_coef x the entropy, advantages normalised per minibatch."""
+def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args) -> tuple[torch.Tensor, dict]:
+    """Appendix Eqs. (4)-(5) on a minibatch: the clipped surrogate + vf_coef x the value loss - ent_coef x the entropy,
+    advantages normalised per minibatch; and the minibatch's statistics, on the device (no host sync)."""
+    distribution, _ = actor.distribution(obs)
+    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8) if len(obs) > 1 else advantages
+    entropy = distribution.entropy().sum(-1).mean()
+    policy_loss, ratio = ppo_policy_loss(distribution.log_prob(actions).sum(-1), old_logprobs, adv, clip)
+    value_loss = ppo_value_loss(critic(obs)[:, 0], returns)
+    stats = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
+             "approx_kl": ((ratio - 1) - ratio.log()).mean(), "clipfrac": ((ratio - 1).abs() > clip).float().mean()}
+    return policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy, stats
+
+
+def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optimizer, epochs, clip, args,
+               loss_fn=ppo_loss) -> dict:
+    """PPO's update of a rollout: `epochs` passes over it in shuffled minibatches, one step of loss_fn (ppo_loss,
+    compiled with --compile) each. The last minibatch's statistics, the clip fraction over all of them."""
     clip_fractions = []
     for _ in range(epochs):
         order = torch.randperm(len(obs), device=obs.device)
         for start in range(0, len(obs), args.minibatch_size):
             idx = order[start : start + args.minibatch_size]
-            distribution, _ = actor.distribution(obs[idx])
-            adv = advantages[idx]
-            adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(idx) > 1 else adv
-            entropy = distribution.entropy().sum(-1).mean()
-            policy_loss, ratio = ppo_policy_loss(distribution.log_prob(actions[idx]).sum(-1), logprobs[idx], adv, clip)
-            value_loss = ppo_value_loss(critic(obs[idx])[:, 0], returns[idx])
-            loss = policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy
+            loss, stats = loss_fn(actor, critic, obs[idx], actions[idx], logprobs[idx], advantages[idx], returns[idx],
+                                  clip, args)
             optimize(optimizer, loss, "PPO loss", args.max_grad_norm)
-            clip_fractions.append(((ratio - 1).abs() > clip).float().mean().item())
-    losses = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
-              "approx_kl": ((ratio - 1) - ratio.log()).mean(), "clipfrac": np.mean(clip_fractions)}
-    return {name: torch.as_tensor(value).detach() for name, value in losses.items()}
+            clip_fractions.append(stats["clipfrac"])
+    return {name: value.detach() for name, value in stats.items()} | {"clipfrac": torch.stack(clip_fractions).mean()}
 
 
 def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
@@ -452,10 +460,10 @@ def preference_loss(segment_returns: torch.Tensor, y: torch.Tensor, label_smooth
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
-def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[int, int]:
+def preference_accuracy(segment_returns: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(correct, counted) over strict labels: an equal label has no right side (the reference code counted it)."""
     strict = y != 0.5
-    return int(((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5))[strict].sum()), int(strict.sum())
+    return (((segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5)) & strict).sum(), strict.sum()
 
 
 def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
@@ -463,8 +471,7 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
     inputs0, inputs1, y = preferences["inputs0"], preferences["inputs1"], preferences["y"]
     for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
-        correct = counted = 0
-        losses = []
+        correct = counted = loss_sum = torch.zeros((), device=y.device)  # summed on the device: one sync an epoch
         for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
@@ -474,11 +481,11 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
                 c, m = preference_accuracy(returns.detach(), y[idx])
                 correct, counted = correct + c, counted + m
             optimize(optimizer, loss, "reward-model loss")
-            losses.append(loss.item() / len(reward_model.members))
-        accuracy = correct / counted if counted else float("nan")
+            loss_sum = loss_sum + loss.detach() / len(reward_model.members)
+        accuracy = correct.item() / counted.item() if counted else float("nan")
         if accuracy > 0.97:
             break
-    return float(np.mean(losses)), accuracy
+    return (loss_sum / -(-len(y) // args.reward_batch_size)).item(), accuracy
 
 
 # Plumbing: command line, files, evaluation, the loop's state
