@@ -38,6 +38,8 @@ class Args:
     """the Weights & Biases project"""
     capture_video: bool = False
     """if toggled, record the first episode of each evaluation to videos/ (headless: MUJOCO_GL=egl)"""
+    compile: bool = False
+    """if toggled, torch.compile the PPO minibatch loss (faster after a first compilation of about 10 s)"""
     output_dir: str | None = None
     """where the run's files go (default: runs/<run name>)"""
     checkpoint_every: int = 50000
@@ -367,6 +369,12 @@ def optimize(optimizer, loss: torch.Tensor, name: str, max_grad_norm: float | No
     optimizer.step()
 
 
+def adam(params, lr: float, eps: float = 1e-8) -> torch.optim.Adam:
+    """Adam with fused kernels (PyTorch's fused=True: one kernel a step, not a loop of small ones over the
+    parameters): the same update, up to float rounding."""
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
+
+
 def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args) -> tuple[torch.Tensor, dict]:
     """Appendix Eqs. (4)-(5) on a minibatch: the clipped surrogate + vf_coef x the value loss - ent_coef x the entropy,
     advantages normalised per minibatch; and the minibatch's statistics, on the device (no host sync)."""
@@ -386,11 +394,10 @@ def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optim
     compiled with --compile) each. The last minibatch's statistics, the clip fraction over all of them."""
     clip_fractions = []
     for _ in range(epochs):
-        order = torch.randperm(len(obs), device=obs.device)
-        for start in range(0, len(obs), args.minibatch_size):
-            idx = order[start : start + args.minibatch_size]
-            loss, stats = loss_fn(actor, critic, obs[idx], actions[idx], logprobs[idx], advantages[idx], returns[idx],
-                                  clip, args)
+        order = torch.randperm(len(obs), device=obs.device)  # the rollout shuffled once an epoch, cut in minibatches
+        shuffled = [x[order].split(args.minibatch_size) for x in (obs, actions, logprobs, advantages, returns)]
+        for minibatch in zip(*shuffled):
+            loss, stats = loss_fn(actor, critic, *minibatch, clip, args)
             optimize(optimizer, loss, "PPO loss", args.max_grad_norm)
             clip_fractions.append(stats["clipfrac"])
     return {name: value.detach() for name, value in stats.items()} | {"clipfrac": torch.stack(clip_fractions).mean()}
@@ -509,7 +516,7 @@ def parse_args() -> Args:
     return args
 
 
-RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name", "capture_video")
+RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name", "capture_video", "compile")
 TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher's, --teacher-* here
 
 
@@ -733,10 +740,11 @@ if __name__ == "__main__":
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
     # one Adam over both networks, as SB3's policy (Adam works per parameter: the same as one for each)
-    optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
+    optimizer = adam([*actor.parameters(), *critic.parameters()], args.learning_rate, eps=1e-5)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
-    reward_optimizer = torch.optim.Adam(reward_model.parameters(), lr=args.reward_lr)
+    reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
     obs_stats, knn_reward = RunningMeanStd(obs_dim), KnnStateEntropy(obs_dim, args.knn_k, device)
+    loss_fn = torch.compile(ppo_loss) if args.compile else ppo_loss  # the eager ppo_loss is the reference
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
@@ -916,7 +924,7 @@ if __name__ == "__main__":
             clip = clip_range(args.clip_coef, progress.global_step, args.total_timesteps)
             epochs = args.update_epochs if progress.reward_ready else args.unsup_update_epochs
             losses = ppo_update(b_obs, b_actions, b_logprobs, b_advantages, b_returns, actor, critic, optimizer, epochs,
-                                clip, args)
+                                torch.tensor(clip, device=device), args, loss_fn)  # a tensor: compiled once
             progress.counts["ppo_epochs"] += epochs
             losses["explained_variance"] = 1 - (b_returns - b_values).var() / b_returns.var().clamp(1e-8)
             writer.add_scalar("charts/clip_range", clip, progress.global_step)

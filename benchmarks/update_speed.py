@@ -113,8 +113,8 @@ def sac_variants(hidden, layers, batch, device, env_steps: bool):
     critic = pebble.TwinCritic(obs_dim, action_dim, hidden, layers).to(device)
     critic_target = copy.deepcopy(critic)
     log_alpha = torch.tensor(math.log(0.1), device=device, requires_grad=True)
-    optimizers = (torch.optim.Adam(actor.parameters(), lr=3e-4), torch.optim.Adam(critic.parameters(), lr=3e-4),
-                  torch.optim.Adam([log_alpha], lr=1e-4))
+    optimizers = (pebble.adam(actor.parameters(), 3e-4), pebble.adam(critic.parameters(), 3e-4),
+                  pebble.adam([log_alpha], 1e-4))  # as pebble.py makes them
     plain = PlainSAC(obs_dim, action_dim, hidden, layers, device)
     counter = {"script": 0, "plain": 0}
 
@@ -138,7 +138,8 @@ def sac_variants(hidden, layers, batch, device, env_steps: bool):
 
 
 def ppo_variants(device, updates: int):
-    """One epoch of minibatch updates over a walker-walk rollout of the PrefPPO DMC preset (script, plain)."""
+    """One epoch of minibatch updates over a walker-walk rollout of the PrefPPO DMC preset (script, script with
+    --compile, plain)."""
     preset = prefppo.DMC_PRESET
     obs_dim, action_dim, hidden, layers = 24, 6, prefppo.Args.hidden_dim, prefppo.Args.num_layers
     rollout, minibatch = preset["num_envs"] * preset["num_steps"], preset["minibatch_size"]
@@ -148,7 +149,7 @@ def ppo_variants(device, updates: int):
     args = argparse.Namespace(minibatch_size=minibatch, vf_coef=0.5, ent_coef=0.0, max_grad_norm=0.5)
     actor = prefppo.Actor(obs_dim, action_dim, hidden, layers, use_sde=True).to(device)
     critic = prefppo.make_critic(obs_dim, hidden, layers).to(device)
-    optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=5e-5, eps=1e-5)
+    optimizer = prefppo.adam([*actor.parameters(), *critic.parameters()], 5e-5, eps=1e-5)  # as prefppo.py
     plain_policy = plain_mlp(obs_dim, action_dim, hidden, layers, nn.Tanh).to(device)
     plain_log_std = nn.Parameter(torch.zeros(hidden, action_dim, device=device))
     plain_value = plain_mlp(obs_dim, 1, hidden, layers, nn.Tanh).to(device)
@@ -156,9 +157,11 @@ def ppo_variants(device, updates: int):
     plain_optimizer = torch.optim.Adam(params, lr=5e-5, eps=1e-5)
     n = min(rollout, updates * minibatch)  # the first `updates` minibatches of the epoch
 
-    def script_epoch():
+    clip, compiled_loss = torch.tensor(0.4, device=device), torch.compile(prefppo.ppo_loss)
+
+    def script_epoch(loss_fn=prefppo.ppo_loss):
         prefppo.ppo_update(obs[:n], actions[:n], logprobs[:n], advantages[:n], returns[:n], actor, critic,
-                           optimizer, 1, 0.4, args)
+                           optimizer, 1, clip, args, loss_fn)
 
     def plain_epoch():
         order = torch.randperm(n, device=device)
@@ -178,7 +181,7 @@ def ppo_variants(device, updates: int):
             plain_optimizer.step()
             ((ratio - 1).abs() > 0.4).float().mean().item()  # the clip fraction, as the script logs it
 
-    return script_epoch, plain_epoch, n // minibatch
+    return script_epoch, lambda: script_epoch(compiled_loss), plain_epoch, n // minibatch
 
 
 def timed(fn, calls: int) -> float:
@@ -215,8 +218,10 @@ if __name__ == "__main__":
               20 if args.quick else 200, "step"),
              ("SAC update, 1024 x 2, batch 1024 (paper, DMC)", *sac_variants(1024, 2, 1024, device, False),
               2 if args.quick else (10 if args.device == "cpu" else 200), "update")]
-    script_epoch, plain_epoch, minibatches = ppo_variants(device, 10 if args.quick else 250)
+    script_epoch, compiled_epoch, plain_epoch, minibatches = ppo_variants(device, 10 if args.quick else 250)
     cases.append((f"PPO epoch, PrefPPO DMC preset ({minibatches} minibatches of 64, 256 x 3, gSDE)", script_epoch,
+                  plain_epoch, 1, "epoch"))
+    cases.append(("the same, prefppo.py --compile (ppo_loss compiled; first call not timed)", compiled_epoch,
                   plain_epoch, 1, "epoch"))
     print(f"device: {torch.cuda.get_device_name() if args.device == 'cuda' else 'cpu'}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, median of {args.rounds} alternating rounds")

@@ -73,6 +73,28 @@ def test_temperature_loss_raises_alpha_when_entropy_is_below_target():
     assert high_entropy.item() == pytest.approx(0.1 * 4)  # entropy 3 above -1: descent lowers alpha
 
 
+def test_sac_update_steps_each_network_on_its_own_loss_only():
+    """The actor's loss backpropagates through the critics to the actions but computes no gradient for the critics'
+    weights (optimize's backward inputs); the temperature's loss reaches neither network."""
+    torch.manual_seed(0)
+    actor, critic = pebble.Actor(3, 2, 16, 2), pebble.TwinCritic(3, 2, 16, 2)
+    log_alpha = torch.zeros((), requires_grad=True)
+    actor_opt, critic_opt, alpha_opt = (pebble.adam(p, 1e-3) for p in (actor.parameters(), critic.parameters(),
+                                                                       [log_alpha]))
+    batch = pebble.Batch(torch.randn(8, 3), torch.rand(8, 2) * 2 - 1, torch.randn(8, 1), torch.randn(8, 3),
+                         torch.zeros(8, 1))
+    critic_before = [p.clone() for p in critic.parameters()]
+    actions, log_prob = actor.sample(batch.obs)
+    pebble.optimize(actor_opt, pebble.sac_actor_loss(log_prob, *critic(batch.obs, actions), 0.1), "actor loss")
+    assert all(p.grad is None for p in critic.parameters())  # no critic gradient was computed
+    assert all(torch.equal(p, q) for p, q in zip(critic.parameters(), critic_before))
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
+    losses = pebble.sac_update(batch, batch.rewards, actor, critic, pebble.TwinCritic(3, 2, 16, 2), log_alpha,
+                               actor_opt, critic_opt, alpha_opt, 0.99)
+    assert log_alpha.item() != 0 and all(torch.isfinite(v) for v in losses.values())
+    assert all(isinstance(opt, torch.optim.Adam) and opt.defaults["fused"] for opt in (actor_opt, critic_opt, alpha_opt))
+
+
 def test_choices_are_the_modules_names():
     annotations = pebble.Args.__annotations__
     assert typing.get_args(annotations["teacher"]) == tuple(TEACHERS)
@@ -265,7 +287,7 @@ def test_label_smoothing_softens_the_target_as_in_the_appendix():
 def test_accuracy_does_not_count_equal_labels():
     returns = torch.tensor([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])  # always predicts "first"
     correct, counted = pebble.preference_accuracy(returns, torch.tensor([0.5, 0.5, 0.0, 1.0]))
-    assert (correct, counted) == (1, 2)  # the old code would say 3 of 4
+    assert (int(correct), int(counted)) == (1, 2)  # the old code would say 3 of 4
 
 
 def test_train_reward_learns_a_separable_preference():

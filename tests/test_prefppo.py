@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 import prefppo
 from samplers import planned_labels, schedule_sizes
@@ -235,6 +236,31 @@ def test_ppo_policy_loss_is_the_clipped_surrogate_of_a_hand_computed_case():
     torch.testing.assert_close(log_prob.grad, torch.tensor([0.0, 0.0, -2.0 * 1.1 / 3]))
 
 
+def test_ppo_loss_is_the_surrogate_plus_the_weighted_value_loss_and_compiles_to_the_same_numbers():
+    torch.manual_seed(0)
+    actor, critic = prefppo.Actor(5, 3, 16, 2, use_sde=True), prefppo.make_critic(5, 16, 2)
+    obs, actions, old_logprobs = torch.randn(32, 5), torch.randn(32, 3), torch.randn(32)
+    advantages, returns, clip = torch.randn(32), torch.randn(32), torch.tensor(0.3)
+    args = prefppo.Args(vf_coef=0.5, ent_coef=0.01)
+    loss, stats = prefppo.ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args)
+    distribution, _ = actor.distribution(obs)  # by hand: the parts, advantages normalised over the minibatch
+    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    policy_loss, ratio = prefppo.ppo_policy_loss(distribution.log_prob(actions).sum(-1), old_logprobs, adv, 0.3)
+    entropy = distribution.entropy().sum(-1).mean()
+    expected = policy_loss + 0.5 * F.mse_loss(critic(obs)[:, 0], returns) - 0.01 * entropy
+    torch.testing.assert_close(loss, expected)
+    assert stats["clipfrac"].item() == pytest.approx(((ratio - 1).abs() > 0.3).float().mean().item())
+    # --compile: the same loss and gradients up to float rounding
+    compiled = torch.compile(prefppo.ppo_loss)
+    grads = []
+    for loss_fn in (prefppo.ppo_loss, compiled):
+        actor.zero_grad(), critic.zero_grad()
+        loss_fn(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args)[0].backward()
+        grads.append([p.grad.clone() for p in [*actor.parameters(), *critic.parameters()]])
+    for eager, compiled_grad in zip(*grads):
+        torch.testing.assert_close(compiled_grad, eager, rtol=1e-4, atol=1e-6)
+
+
 def test_ppo_value_loss_is_the_plain_mse_weighted_once_by_vf_coef():
     values, returns = torch.tensor([1.0, 3.0]), torch.tensor([2.0, 1.0])
     assert prefppo.ppo_value_loss(values, returns).item() == pytest.approx((1 + 4) / 2)  # no 1/2, no clipping
@@ -395,10 +421,12 @@ def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     assert log_std.shape == (32, 1) and log_std.any()  # gSDE by default: hidden 32 (TINY) x 1 action, trained
 
 
-def test_no_use_sde_trains_a_state_independent_std(tmp_path):
-    out = tmp_path / "no_sde"
-    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--total-timesteps", "2400", "--no-use-sde")
+def test_no_use_sde_trains_a_state_independent_std_with_the_compiled_loss(tmp_path):
+    out = tmp_path / "no_sde"  # --compile too: a whole run through the compiled ppo_loss
+    result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--total-timesteps", "2400", "--no-use-sde",
+                         "--compile")
     assert result.returncode == 0, result.stderr[-3000:]
+    assert finished_counts(result.stdout)["ppo_epochs"] == 6 and json.loads((out / "config.json").read_text())["compile"]
     log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
     assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
