@@ -31,13 +31,13 @@ class Args:
     seed: int = 1
     """seed of the experiment"""
     cuda: bool = True
-    """the GPU when torch sees one, else the CPU (--no-cuda: the CPU)"""
+    """use the GPU when torch sees one (--no-cuda: the CPU)"""
     track: bool = False
     """if toggled, log to Weights & Biases (needs `pip install wandb`)"""
     wandb_project_name: str = "bpref"
     """the Weights & Biases project"""
     capture_video: bool = False
-    """if toggled, record the first episode of each evaluation to videos/ (headless: MUJOCO_GL=egl)"""
+    """if toggled, record each evaluation's first episode to videos/ (headless: MUJOCO_GL=egl)"""
     compile: bool = False
     """if toggled, torch.compile the PPO minibatch loss (faster after a first compilation of about 10 s)"""
     output_dir: str | None = None
@@ -66,9 +66,10 @@ class Args:
     """overrides the teacher's adaptive skip fraction"""
     teacher_eps_equal: float | None = None
     """overrides the teacher's adaptive equal fraction"""
-    sampler: Literal["uniform", "disagreement", "entropy", "coverage", "disagreement-coverage",
-                     "entropy-coverage"] = "disagreement"
-    """query selection"""
+    sampler: Literal[
+        "uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"
+    ] = "disagreement"
+    """query selection (paper Section 4.2)"""
     schedule: Literal["uniform", "decay", "increase"] = "uniform"
     """feedback schedule (paper Section 4.2)"""
     max_feedback: int | None = None
@@ -116,7 +117,7 @@ class Args:
     eval_every: int = 50000
     """environment steps between evaluations (checked after each rollout)"""
     eval_episodes: int = 10
-    """episodes per evaluation"""
+    """episodes per evaluation (reference code: 10)"""
     ground_truth_reward: bool = False
     """if toggled, train PPO on the true reward with no teacher (the normalisation denominator)"""
     knn_k: int = 5
