@@ -123,7 +123,7 @@ class Args:
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
     query_recent_episodes: int = 100
-    """segments are drawn from the last N complete episodes (reference code: 100; 0 = all in the buffer)"""
+    """segments come from the last N complete episodes (reference code: 100; 0 = all so far)"""
     critic_reset_updates: int = 100
     """SAC updates on relabelled data right after the critic reset of the first reward update"""
 
