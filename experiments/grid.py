@@ -182,12 +182,17 @@ def safe_name(text: str) -> str:
 
 
 def expand(grid: Grid) -> list[Run]:
-    """The cross product, then the ground-truth runs (no teacher, budget, sampler or schedule: one per algorithm,
-    task and seed)."""
+    """Per algorithm and task: first the ground-truth runs (no teacher, budget, sampler or schedule: one per seed),
+    so that a grid stopped part-way can already be normalised, then the cross product."""
     runs = []
     for algorithm in grid.algorithms:
         extra = shlex.split(grid.flags) + shlex.split(getattr(grid, f"{algorithm}_flags"))
         for env_id in grid.env_ids:
+            if grid.ground_truth:
+                for seed in grid.seeds:
+                    name = safe_name(f"{algorithm}__{env_id}__ground-truth__s{seed}")
+                    runs.append(Run(name, algorithm, ("--env-id", env_id, "--seed", str(seed), "--ground-truth-reward",
+                                                      *extra)))
             for teacher in grid.teachers:
                 for budget in grid.budgets:
                     for sampler in grid.samplers:
@@ -198,11 +203,6 @@ def expand(grid: Grid) -> list[Run]:
                                 flags = ["--env-id", env_id, "--seed", str(seed), "--teacher", teacher,
                                          *parse_budget(budget), "--sampler", sampler, "--schedule", schedule, *extra]
                                 runs.append(Run(name, algorithm, tuple(flags)))
-            if grid.ground_truth:
-                for seed in grid.seeds:
-                    name = safe_name(f"{algorithm}__{env_id}__ground-truth__s{seed}")
-                    runs.append(Run(name, algorithm, ("--env-id", env_id, "--seed", str(seed), "--ground-truth-reward",
-                                                      *extra)))
     return runs
 
 

@@ -71,6 +71,10 @@ def test_grid_is_the_cross_product_plus_one_ground_truth_run_per_algorithm_task_
     assert len(teacher_runs) == 2 * 2 * 3 * 2 * 2 * 1 * 3 and len(truth_runs) == 2 * 2 * 3
     assert len({r.name for r in runs}) == len(runs)
     assert not any("--teacher" in r.flags or "--max-feedback" in r.flags or "--sampler" in r.flags for r in truth_runs)
+    for truth in truth_runs:  # each baseline runs before every teacher run of its algorithm and task
+        algorithm, env_id = truth.name.split("__")[:2]
+        assert all(runs.index(truth) < i for i, r in enumerate(runs) if r.name.startswith(f"{algorithm}__{env_id}__")
+                   and r in teacher_runs)
     one = next(r for r in teacher_runs if r.name == "pebble__walker-walk__stoc__fb500__entropy__decay__s2")
     assert one.flags == ("--env-id", "walker-walk", "--seed", "2", "--teacher", "stoc", "--max-feedback", "500",
                          "--sampler", "entropy", "--schedule", "decay", "--hidden-dim", "64", "--batch-size", "64")
@@ -101,7 +105,8 @@ def test_dry_run_prints_every_command_and_starts_nothing(tmp_path):
     assert result.returncode == 0, result.stderr
     commands = [line for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS=1 python ")]
     assert len(commands) == 12
-    first = shlex.split(commands[0])
+    assert "--ground-truth-reward" in commands[0]  # the baselines start first
+    first = shlex.split(next(c for c in commands if "--teacher" in c))
     assert first[2].endswith("pebble.py") and first[first.index("--teacher") + 1] == "oracle"
     assert first[first.index("--output-dir") + 1] == str((tmp_path / "grid" / TEACHER_RUNS[0]).resolve())
     assert sum("--ground-truth-reward" in c for c in commands) == 4
