@@ -89,14 +89,14 @@ class Grid:
 
 # Presets: `python experiments/grid.py NAME [overrides]`; `custom` is the bare grid
 MINI_BPREF = Grid(
-    env_ids=("walker-walk",), budgets=("300/30",), seeds=(1, 2, 3), root="runs/mini-bpref",
+    env_ids=("walker-walk",), budgets=("300/30",), seeds=(1, 2, 3, 4, 5), root="runs/mini-bpref",
     # 40K steps, 128 x 2 networks, pre-training until 5K, 10 sessions of 30 queries every 3500 steps (5001 ... 36501),
     # at most 20 reward epochs per session (paper: 50); the rest as the walker-walk preset (docs/experiments.md)
     flags="--total-timesteps 40000 --hidden-dim 128 --num-layers 2 --batch-size 128 --unsup-steps 4000 "
           "--feedback-every 3500 --reward-epochs 20 --eval-every 5000 --eval-episodes 10 --checkpoint-every 10000")
 PRESETS = {
     "custom": ("a grid of your own (defaults: PEBBLE, walker-walk, six teachers, the task's budget, 3 seeds)", Grid()),
-    "mini-bpref": ("PEBBLE on walker-walk at CPU size: six teachers + ground truth, 3 seeds, about 2 h on 2 cores "
+    "mini-bpref": ("PEBBLE on walker-walk at CPU size: six teachers + ground truth, 5 seeds, about 1.5 h on 2 cores "
                    "(docs/experiments.md)", MINI_BPREF),
     "learning-cpu-pebble": (
         "README's CPU learning benchmark: PEBBLE (oracle, 1000 labels) and SAC on the true reward, walker-walk 100K "
