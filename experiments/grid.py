@@ -39,6 +39,8 @@ from samplers import SAMPLERS, SCHEDULES  # noqa: E402
 from sim_teacher import TEACHERS  # noqa: E402
 
 ALGORITHMS = ("pebble", "prefppo")
+IMPLEMENTATIONS = ("ours", "reference")  # reference: rll-research/BPref through benchmarks/reference/run.py
+REFERENCE_RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
 # Flags the grid sets for each run; --flags must not set them too
 GRID_FLAGS = ("--env-id", "--seed", "--teacher", "--sampler", "--schedule", "--max-feedback", "--feedback-per-session",
               "--ground-truth-reward", "--output-dir", "--resume")
@@ -49,6 +51,8 @@ EXIT_MEANINGS = {0: "ok", 1: "a write failed", 2: "bad input", 3: "non-finite va
 class Grid:
     algorithms: tuple[str, ...] = ("pebble",)
     """pebble and/or prefppo"""
+    implementations: tuple[str, ...] = ("ours",)
+    """ours and/or reference (the reference code, set up by benchmarks/reference/setup.sh; PEBBLE and SAC)"""
     env_ids: tuple[str, ...] = ("walker-walk",)
     """tasks (any --env-id of the scripts)"""
     teachers: tuple[str, ...] = tuple(TEACHERS)
@@ -63,6 +67,8 @@ class Grid:
     """seeds of every configuration"""
     ground_truth: bool = True
     """also run --ground-truth-reward once per algorithm x task x seed (the normalisation's denominator)"""
+    preference_runs: bool = True
+    """run the teachers x budgets x samplers x schedules x seeds (--no-preference-runs: ground-truth runs only)"""
     flags: str = ""
     """more flags for every run, as one string: --flags='--total-timesteps 100000 --hidden-dim 256'"""
     pebble_flags: str = ""
@@ -88,6 +94,9 @@ class Grid:
 
 
 # Presets: `python experiments/grid.py NAME [overrides]`; `custom` is the bare grid
+# The README's CPU scale: 10 sessions of 100 (steps 10001, 19001, ..., 91001) spend 1000 labels within 100K steps
+CPU_PEBBLE = ("--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --batch-size 256 --eval-every 10000 "
+              "--eval-episodes 10 --feedback-every 9000")
 MINI_BPREF = Grid(
     env_ids=("walker-walk",), budgets=("300/30",), seeds=(1, 2, 3, 4, 5), root="runs/mini-bpref",
     # 40K steps, 128 x 2 networks, pre-training until 5K, 10 sessions of 30 queries every 3500 steps (5001 ... 36501),
@@ -101,10 +110,20 @@ PRESETS = {
     "learning-cpu-pebble": (
         "README's CPU learning benchmark: PEBBLE (oracle, 1000 labels) and SAC on the true reward, walker-walk 100K "
         "steps, 256 x 2, 3 seeds",
-        Grid(teachers=("oracle",), budgets=("1000/100",), root="runs/learning-cpu-pebble",
-             # 10 sessions of 100 (steps 10001, 19001, ..., 91001) spend the 1000 labels within 100K steps
-             flags="--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --batch-size 256 --eval-every 10000 "
-                   "--eval-episodes 10 --feedback-every 9000")),
+        Grid(teachers=("oracle",), budgets=("1000/100",), root="runs/learning-cpu-pebble", flags=CPU_PEBBLE)),
+    # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
+    "parity-pebble": (
+        "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",
+        Grid(implementations=IMPLEMENTATIONS, teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
+             ground_truth=False, root="runs/parity", flags=CPU_PEBBLE)),
+    "parity-pebble-mistake": (
+        "PEBBLE under the mistake teacher (eps 0.1), as parity-pebble, 3 seeds each",
+        Grid(implementations=IMPLEMENTATIONS, teachers=("mistake",), budgets=("1000/100",), ground_truth=False,
+             root="runs/parity", flags=CPU_PEBBLE)),
+    "parity-sac": (
+        "SAC on the true reward (the same pre-training and critic reset) at the README's CPU scale, ours and the "
+        "reference code's train_SAC.py, 3 seeds each",
+        Grid(implementations=IMPLEMENTATIONS, preference_runs=False, root="runs/parity", flags=CPU_PEBBLE)),
     "learning-cpu-prefppo": (
         "README's CPU learning benchmark: PrefPPO (oracle, 1000 labels) and PPO on the true reward, walker-walk 1M "
         "steps, the paper's PrefPPO preset, 3 seeds",
@@ -120,10 +139,14 @@ class Run:
     algorithm: str
     flags: tuple[str, ...]
     """the script's flags, without --output-dir and --resume"""
+    implementation: str = "ours"
 
     def command(self, run_dir: Path, resume: bool) -> list[str]:
         """The script and its flags (run with the Python of the machine that runs it); the same flags again on resume,
-        which the scripts accept as they equal the saved configuration."""
+        which the scripts accept as they equal the saved configuration. The reference takes the same flags through
+        its runner, which never resumes (it writes no checkpoint.pt: a stopped run is started afresh)."""
+        if self.implementation == "reference":
+            return [str(REFERENCE_RUNNER), *self.flags, "--output-dir", str(run_dir)]
         # a resumed run takes its directory from --resume (the folder may have moved since)
         return [str(ROOT / f"{self.algorithm}.py"), *self.flags, "--resume" if resume else "--output-dir", str(run_dir)]
 
@@ -142,11 +165,16 @@ def parse_budget(budget: str) -> list[str]:
 def check(grid: Grid) -> str | None:
     """The first problem with the grid as one line, or None."""
     for name, given, known in (("algorithms", grid.algorithms, ALGORITHMS), ("teachers", grid.teachers, TEACHERS),
+                               ("implementations", grid.implementations, IMPLEMENTATIONS),
                                ("samplers", grid.samplers, SAMPLERS), ("schedules", grid.schedules, SCHEDULES)):
         unknown = [value for value in given if value not in known]
         if unknown:
             return f"--{name} {unknown[0]!r} is not one of {', '.join(known)}"
-    for name in ("algorithms", "env_ids", "teachers", "budgets", "samplers", "schedules", "seeds"):
+    if "reference" in grid.implementations and "prefppo" in grid.algorithms:
+        return "--implementations reference runs PEBBLE and SAC only (the reference's PrefPPO is not wired in yet)"
+    if not (grid.ground_truth or grid.preference_runs):
+        return "--no-ground-truth with --no-preference-runs leaves no run"
+    for name in ("algorithms", "implementations", "env_ids", "teachers", "budgets", "samplers", "schedules", "seeds"):
         values = getattr(grid, name)
         if not values:
             return f"--{name.replace('_', '-')} needs at least one value"
@@ -182,27 +210,32 @@ def safe_name(text: str) -> str:
 
 
 def expand(grid: Grid) -> list[Run]:
-    """Per algorithm and task: first the ground-truth runs (no teacher, budget, sampler or schedule: one per seed),
-    so that a grid stopped part-way can already be normalised, then the cross product."""
-    runs = []
+    """Per implementation, algorithm and task: first the ground-truth runs (no teacher, budget, sampler or schedule:
+    one per seed), so that a grid stopped part-way can already be normalised, then the cross product. The reference's
+    runs are named as ours with the prefix reference__."""
+    return [run for implementation in grid.implementations for run in expand_one(grid, implementation)]
+
+
+def expand_one(grid: Grid, implementation: str) -> list[Run]:
+    runs, prefix = [], "" if implementation == "ours" else f"{implementation}__"
     for algorithm in grid.algorithms:
         extra = shlex.split(grid.flags) + shlex.split(getattr(grid, f"{algorithm}_flags"))
         for env_id in grid.env_ids:
             if grid.ground_truth:
                 for seed in grid.seeds:
-                    name = safe_name(f"{algorithm}__{env_id}__ground-truth__s{seed}")
+                    name = safe_name(f"{prefix}{algorithm}__{env_id}__ground-truth__s{seed}")
                     runs.append(Run(name, algorithm, ("--env-id", env_id, "--seed", str(seed), "--ground-truth-reward",
-                                                      *extra)))
-            for teacher in grid.teachers:
+                                                      *extra), implementation))
+            for teacher in grid.teachers if grid.preference_runs else ():
                 for budget in grid.budgets:
                     for sampler in grid.samplers:
                         for schedule in grid.schedules:
                             for seed in grid.seeds:
-                                name = safe_name(f"{algorithm}__{env_id}__{teacher}__fb{budget.replace('/', '-')}"
-                                                 f"__{sampler}__{schedule}__s{seed}")
+                                name = safe_name(f"{prefix}{algorithm}__{env_id}__{teacher}__fb"
+                                                 f"{budget.replace('/', '-')}__{sampler}__{schedule}__s{seed}")
                                 flags = ["--env-id", env_id, "--seed", str(seed), "--teacher", teacher,
                                          *parse_budget(budget), "--sampler", sampler, "--schedule", schedule, *extra]
-                                runs.append(Run(name, algorithm, tuple(flags)))
+                                runs.append(Run(name, algorithm, tuple(flags), implementation))
     return runs
 
 

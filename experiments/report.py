@@ -13,6 +13,8 @@ import functools
 import importlib
 import inspect
 import json
+import os
+import shlex
 import sys
 import warnings
 from collections import defaultdict
@@ -50,6 +52,8 @@ class Args:
     """random seed of the bootstrap"""
     alignment_runs: int = 1
     """reward-alignment plots per algorithm and task (0 = none): finished oracle runs first, then the others"""
+    parity: str | None = None
+    """also write the side-by-side of ours and the reference code (settings run by both) to this Markdown file"""
 
 
 @dataclass
@@ -89,6 +93,8 @@ def setting_of(config: dict) -> tuple:
     (--teacher-beta ... that differ from the named teacher's values) are part of its name, and ground-truth runs
     have no teacher, budget, sampler or schedule."""
     algorithm = "prefppo" if "num_envs" in config else "pebble"
+    if config.get("implementation", "ours") != "ours":  # benchmarks/reference/run.py: its own algorithm's row
+        algorithm = f"{config['implementation']}-{algorithm}"
     task = config["env_id"].removesuffix("-v3") if is_metaworld(config["env_id"]) else config["env_id"]
     if config.get("ground_truth_reward"):
         return algorithm, task, GROUND_TRUTH, "-", "-", "-"
@@ -413,6 +419,137 @@ def alignment_figure(run: Run, root: Path, out: Path) -> tuple[Path, float]:
     return path, correlation
 
 
+# ---------------------------------------------------------------- parity with the reference code
+
+
+REFERENCE_PREFIX = "reference-"
+
+
+def parity_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
+    """(our setting, our finished runs, the reference's finished runs) for every setting both implementations ran."""
+    groups = defaultdict(list)
+    for run in runs:
+        if run.state == "finished":
+            groups[run.setting].append(run)
+    pairs = []
+    for setting in sorted(groups, key=sort_key):
+        twin = (REFERENCE_PREFIX + setting[0], *setting[1:])
+        if not setting[0].startswith(REFERENCE_PREFIX) and twin in groups:
+            pairs.append((setting, groups[setting], groups[twin]))
+    return pairs
+
+
+def difference_ci(ours: np.ndarray, reference: np.ndarray, reps: int, seed: int) -> tuple[float, float, float]:
+    """Mean of ours - mean of the reference, with a 95% percentile bootstrap CI (seeds resampled within each arm)."""
+    rng = np.random.default_rng(seed)
+    draws = (rng.choice(ours, (reps, len(ours))).mean(1) - rng.choice(reference, (reps, len(reference))).mean(1))
+    return float(ours.mean() - reference.mean()), *map(float, np.percentile(draws, [2.5, 97.5]))
+
+
+def welch_p(ours: np.ndarray, reference: np.ndarray) -> float:
+    """Two-sided p-value of Welch's t-test on the final returns (nan with fewer than 2 runs a side)."""
+    from scipy import stats
+
+    if min(len(ours), len(reference)) < 2:
+        return float("nan")
+    return float(stats.ttest_ind(ours, reference, equal_var=False).pvalue)
+
+
+def curve(run: Run) -> dict:
+    return {row["step"]: row[run.metric] for row in run.rows}
+
+
+def parity_rows(runs: list[Run], reps: int, seed: int) -> list[dict]:
+    """One row per setting run by both implementations: each arm's final score, mean over its evaluations, IQM with
+    its 95% CI, reward correlation and wall time, and the difference ours - reference with its bootstrap CI."""
+    rows = []
+    for setting, ours, reference in parity_pairs(runs):
+        arms = {"ours": ours, "reference": reference}
+        finals = {arm: np.array([r.score for r in group]) for arm, group in arms.items()}
+        iqm = aggregate({arm: scores[:, None] for arm, scores in finals.items()}, reps, seed)
+        row = {**dict(zip(SETTING, setting)), "metric": ours[0].metric}
+        for arm, group in arms.items():
+            correlations = [r.rows[-1].get("reward_correlation", float("nan")) for r in group]
+            row |= {f"{arm}_runs": len(group), f"{arm}_seeds": " ".join(str(r.config["seed"]) for r in group),
+                    f"{arm}_final_mean": float(finals[arm].mean()), f"{arm}_final_std": float(finals[arm].std()),
+                    f"{arm}_finals": " ".join(f"{x:.0f}" for x in finals[arm]),
+                    f"{arm}_mean_over_evaluations": float(np.mean([np.mean(list(curve(r).values())) for r in group])),
+                    f"{arm}_iqm": iqm[arm]["iqm"],
+                    f"{arm}_reward_correlation": float(np.nanmean(correlations)) if np.isfinite(correlations).any()
+                    else float("nan"),
+                    f"{arm}_wall_minutes": float(np.mean([r.rows[-1]["wall_time"] for r in group])) / 60}
+        row["difference"] = difference_ci(finals["ours"], finals["reference"], reps, seed)
+        row["welch_p"] = welch_p(finals["ours"], finals["reference"])
+        rows.append(row)
+    return rows
+
+
+def verdict(row: dict) -> str:
+    """Within noise when the bootstrap CI of the difference holds 0 and Welch's p >= 0.05; not within noise when
+    neither does; inconclusive when they disagree (with few seeds the percentile bootstrap is too narrow)."""
+    point, low, high = row["difference"]
+    interval = f"95% CI [{low:+.1f}, {high:+.1f}], Welch p = {row['welch_p']:.3f}"
+    side = f"ours is {'lower' if point < 0 else 'higher'} by {abs(point):.1f} " \
+           f"({abs(point) / abs(row['reference_final_mean']):.0%} of the reference's mean)"
+    zero_inside, significant = low <= 0 <= high, row["welch_p"] < 0.05
+    if zero_inside and not significant:
+        return f"within noise: ours - reference = {point:+.1f}, {interval}"
+    if not zero_inside and significant:
+        return f"not within noise: {side}, {interval}"
+    return f"inconclusive: {side}, {interval} (the bootstrap CI and Welch's test disagree: more seeds needed)"
+
+
+def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path) -> Path:
+    """Both implementations' learning curves of one setting: mean over seeds (thick) and each seed (thin)."""
+    plt, fig, axes = plt_figure(1, 1, 7.5, 3.8)
+    ax = axes[0, 0]
+    for color, (name, group) in zip(("C0", "C3"), arms.items()):
+        steps = sorted(set.intersection(*[set(curve(r)) for r in group]))
+        values = np.array([[curve(r)[s] for s in steps] for r in group])
+        for seed_values in values:
+            ax.plot(steps, seed_values, color=color, linewidth=0.6, alpha=0.35)
+        ax.plot(steps, values.mean(0), color=color, linewidth=2.2, label=f"{name} ({len(group)} seeds)")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel(group[0].metric.replace("_", " "))
+    ax.legend(fontsize=8)
+    fig.suptitle(f"{setting[0]} on {setting[1]}, {' / '.join(setting[2:])}: mean (thick) and each seed (thin)",
+                 fontsize=9)
+    fig.tight_layout()
+    path = out / safe_file(f"parity_{'_'.join(setting)}.png")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def safe_file(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "._-" else "-" for c in name)
+
+
+def parity_markdown(rows: list[dict], figures: list[Path], target: Path, command: str, reps: int) -> str:
+    lines = ["# Parity with the reference code", "",
+             f"Made by `{command}` from the finished runs: "
+             "each setting run by both pebble.py (ours) and the reference code (rll-research/BPref through "
+             "benchmarks/reference/run.py, same flags). Final = the last evaluation's mean return; IQM with its 95% "
+             f"bootstrap CI (rliable, {reps} replications); difference = mean final return of ours - the reference's, "
+             "95% percentile bootstrap CI with seeds resampled within each arm (with 3-5 seeds a side such intervals "
+             "are narrower than they should be: Welch's p is given beside it). Wall time: minutes per run as "
+             "recorded at its last evaluation, both one thread per run, two runs at a time on the same machine.", ""]
+    for row, figure in zip(rows, figures):
+        lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
+                  f"{row['sampler']}, {row['schedule']}", "", f"**Verdict: {verdict(row)}.**", ""]
+        lines += table(["", "seeds", "final (mean ± std)", "per seed", "mean over evaluations", "IQM [95% CI]",
+                        "final reward correlation", "wall time per run (min)"],
+                       [[arm, row[f"{arm}_seeds"], f"{row[f'{arm}_final_mean']:.1f} ± {row[f'{arm}_final_std']:.1f}",
+                         row[f"{arm}_finals"], f"{row[f'{arm}_mean_over_evaluations']:.1f}",
+                         "{:.1f} [{:.1f}, {:.1f}]".format(*row[f"{arm}_iqm"]), fmt(row[f"{arm}_reward_correlation"]),
+                         f"{row[f'{arm}_wall_minutes']:.1f}"] for arm in ("ours", "reference")])
+        point, low, high = row["difference"]
+        lines += ["", f"Difference ours - reference: {point:+.1f} [{low:+.1f}, {high:+.1f}]", "",
+                  f"![{figure.stem}]({os.path.relpath(figure, target.parent)})",
+                  ""]
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------- the report
 
 
@@ -505,7 +642,7 @@ def report(args: Args) -> Path:
     if args.alignment_runs:
         candidates = defaultdict(list)
         for run in finished:
-            if not run.is_ground_truth:
+            if not run.is_ground_truth and run.config.get("implementation", "ours") == "ours":
                 candidates[run.setting[:2]].append(run)
         for key, group in sorted(candidates.items()):
             for run in sorted(group, key=lambda r: (r.setting[2] != "oracle", str(r.path)))[: args.alignment_runs]:
@@ -589,6 +726,18 @@ def report(args: Args) -> Path:
         lines += ["## Unfinished, failed and missing runs (not in the tables above)", "",
                   *[f"- {line}" for line in incomplete], ""]
 
+    if args.parity:
+        target = Path(args.parity).resolve()
+        parity = parity_rows(runs, args.reps, args.seed)
+        if not parity:
+            raise ReportError(f"--parity: no setting below {root} has finished runs of both ours and the reference")
+        pairs = {setting: {"ours": ours, "reference": reference} for setting, ours, reference in parity_pairs(runs)}
+        parity_figures = [parity_figure(setting, arms, out) for setting, arms in pairs.items()]
+        command = shlex.join(["python", "experiments/report.py", *sys.argv[1:]])
+        target.write_text(parity_markdown(parity, parity_figures, target, command, args.reps))
+        write_csv(out / "parity.csv", [flat(row) for row in parity])
+        for row in parity:
+            print(f"parity: {' / '.join(row[c] for c in SETTING)}: {verdict(row)}")
     (out / "report.md").write_text("\n".join(lines))
     write_csv(out / "runs.csv", run_rows)
     write_csv(out / "aggregates.csv", [flat(row) for row in settings])

@@ -1,0 +1,61 @@
+"""Compatibility edits to a copy of the reference code (rll-research/BPref at REFERENCE_COMMIT), so that it runs on
+Python 3.11 with today's torch, numpy and MuJoCo. Each edit changes how the code reaches a library, never what the
+algorithm computes; why is in EDITS and in benchmarks/reference/README.md.
+
+    python benchmarks/reference/patch.py reference/BPref     # applies every edit once; a second call changes nothing
+"""
+
+import sys
+from pathlib import Path
+
+REFERENCE_COMMIT = "f3ece2ecf04b5d11b276d9bbb19b8004c29429d1"
+
+# (file, text in the reference, replacement, why it changes no algorithm)
+EDITS = [
+    ("reward_model.py",
+     "device = 'cuda'\n",
+     "device = 'cuda' if torch.cuda.is_available() else 'cpu'\n",
+     "the reward model hard-codes CUDA; the same networks on the CPU when no GPU is present"),
+    ("utils.py",
+     "import metaworld\nimport metaworld.envs.mujoco.env_dict as _env_dict\n",
+     "try:\n    import metaworld\n    import metaworld.envs.mujoco.env_dict as _env_dict\nexcept ImportError:\n"
+     "    metaworld = None\n",
+     "its Meta-World v2 cannot be installed (MuJoCo 2.0, mujoco-py); DMC runs never use it"),
+    ("utils.py",
+     "from torch import distributions as pyd\n",
+     "from torch import distributions as pyd\npyd.Distribution.set_default_validate_args(False)\n",
+     "torch >= 1.8 validates distribution arguments by default and refuses tanh(u) = +-1.0 in float32; torch 1.4, "
+     "which the reference was written for, did not validate: the same values"),
+    ("custom_dmc2gym/dmc2gym/wrappers.py",
+     "dim = np.int(np.prod(s.shape))",
+     "dim = int(np.prod(s.shape))",
+     "np.int was an alias of int, removed in numpy 1.24 (twice in the file)"),
+]
+
+
+def apply(tree: Path) -> list[str]:
+    """Applies every edit of EDITS to `tree`; returns what it did, one line an edit. An edit already applied is
+    left as it is; a file where neither the original nor the edited text is found is an error."""
+    done = []
+    for name, old, new, why in EDITS:
+        path = tree / name
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: not found (is {tree} a copy of BPref at {REFERENCE_COMMIT[:7]}?)")
+        text = path.read_text()
+        if new in text:  # first: an edit's new text may contain its old text
+            done.append(f"already edited {name}")
+        elif old in text:
+            path.write_text(text.replace(old, new))
+            done.append(f"edited {name}: {why}")
+        else:
+            raise ValueError(f"{path}: the text to edit is not there: {old.splitlines()[0]!r}")
+    return done
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 2:
+        sys.exit("usage: python benchmarks/reference/patch.py REFERENCE_TREE")
+    try:
+        print("\n".join(apply(Path(sys.argv[1]))))
+    except (OSError, ValueError) as error:
+        sys.exit(f"error: {error}")

@@ -1,0 +1,201 @@
+"""benchmarks/reference/: the compatibility edits on a small fake tree of the reference code, the translation of our
+flags into the reference's settings, its results read back in our eval.csv columns, the grid's implementation axis
+and the report's side-by-side. No network and no reference code needed (CI has neither)."""
+
+import csv
+import json
+import math
+import shlex
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import grid
+import report
+from tests.helpers import ENV, ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks" / "reference"))
+import patch  # noqa: E402
+import run as reference_run  # noqa: E402
+
+RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
+
+
+def fake_tree(root):
+    """The lines of the reference's files that the edits change, among lines they must leave alone."""
+    for name, old, _, _ in patch.EDITS:
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        text = path.read_text() if path.exists() else "import torch\n"
+        path.write_text(text + old + "x = 1\n" + (old if name.endswith("wrappers.py") else ""))
+    return root
+
+
+def test_edits_apply_once_and_change_only_their_text(tmp_path):
+    tree = fake_tree(tmp_path / "BPref")
+    before = {name: (tree / name).read_text() for name, *_ in patch.EDITS}
+    done = patch.apply(tree)
+    assert len(done) == len(patch.EDITS) and all(line.startswith("edited ") for line in done)
+    for name, old, new, _ in patch.EDITS:
+        text = (tree / name).read_text()
+        assert old not in text.replace(new, "") and new in text
+        assert text == before[name].replace(old, new) or name == "utils.py"  # utils.py: two edits
+    wrappers = (tree / "custom_dmc2gym/dmc2gym/wrappers.py").read_text()
+    assert wrappers.count("dim = int(np.prod(s.shape))") == 2 and "np.int(" not in wrappers
+    assert "device = 'cuda' if torch.cuda.is_available() else 'cpu'" in (tree / "reward_model.py").read_text()
+    again = {name: (tree / name).read_text() for name, *_ in patch.EDITS}
+    assert all(line.startswith("already edited") for line in patch.apply(tree))
+    assert again == {name: (tree / name).read_text() for name, *_ in patch.EDITS}
+
+
+def test_a_tree_that_is_not_the_reference_is_refused(tmp_path):
+    tree = fake_tree(tmp_path / "BPref")
+    (tree / "reward_model.py").write_text("device = 'cpu'\n")
+    with pytest.raises(ValueError, match="reward_model.py: the text to edit is not there"):
+        patch.apply(tree)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        patch.apply(tmp_path / "elsewhere")
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks/reference/patch.py"), str(tmp_path / "none")],
+                            capture_output=True, text=True, env=ENV)
+    assert result.returncode == 1 and result.stderr.startswith("error: ") and len(result.stderr.splitlines()) == 1
+
+
+def settings(command: list[str]) -> dict:
+    return dict(item.split("=", 1) for item in command[1:])
+
+
+def test_our_flags_become_the_reference_settings_of_the_same_experiment():
+    args = reference_run.Args(output_dir="x", seed=3, total_timesteps=100000, hidden_dim=256, num_layers=2,
+                              batch_size=256, feedback_every=9000, max_feedback=1000, feedback_per_session=100,
+                              teacher="mistake", sampler="disagreement", learning_rate=5e-4, segment_len=50,
+                              reward_epochs=50)
+    command = reference_run.reference_command(args)
+    assert command[0] == "train_PEBBLE.py"
+    got = settings(command)
+    assert got | {"teacher_eps_mistake": float(got["teacher_eps_mistake"])} == got | {"teacher_eps_mistake": 0.1}
+    expected = {"env": "walker_walk", "seed": "3", "num_train_steps": "100001", "num_seed_steps": "1000",
+                "num_unsup_steps": "9000", "num_interact": "9000", "max_feedback": "1000", "reward_batch": "100",
+                "reward_schedule": "0", "feed_type": "1", "segment": "50", "reward_update": "50", "teacher_beta": "-1",
+                "agent.params.batch_size": "256", "agent.params.actor_lr": "0.0005",
+                "agent.params.critic_lr": "0.0005", "diag_gaussian_actor.params.hidden_dim": "256",
+                "double_q_critic.params.hidden_depth": "2", "eval_frequency": "10000", "num_eval_episodes": "10",
+                "device": "cpu"}
+    assert {key: got[key] for key in expected} == expected
+    # the reference's walker scripts ask 2x (decay) or 0.5x (increase) the per-session count as reward_batch
+    for schedule, code, batch in (("decay", "1", "200"), ("increase", "2", "50")):
+        args.schedule = schedule
+        got = settings(reference_run.reference_command(args))
+        assert (got["reward_schedule"], got["reward_batch"]) == (code, batch)
+    args.teacher, args.schedule = "stoc", "uniform"
+    assert settings(reference_run.reference_command(args))["teacher_beta"] == "1.0"
+    args.ground_truth_reward = True
+    sac = reference_run.reference_command(args)
+    assert sac[0] == "train_SAC.py" and "max_feedback" not in settings(sac)
+    assert settings(sac)["num_unsup_steps"] == "9000"  # the same pre-training as ours
+
+
+def test_the_reference_results_are_read_back_in_our_columns(tmp_path):
+    bpref = tmp_path / "bpref"
+    bpref.mkdir()
+    (bpref / "eval.csv").write_text("episode,episode_reward,step,true_episode_reward\n"
+                                    "10.0,-3.0,10000,150.5\n20.0,-1.0,20000,300.25\n")
+    (bpref / "train.csv").write_text("step,total_feedback,true_episode_reward\n10000,0.0,1\n11000,100.0,1\n"
+                                     "20000,100.0,1\n21000,200.0,1\n")
+    rows = reference_run.converted_rows(bpref, [61.5])
+    assert [(r["step"], r["episode_return"], r["feedback"]) for r in rows] == [(10000, 150.5, 100.0),
+                                                                             (20000, 300.25, 200.0)]
+    assert rows[0]["wall_time"] == 61.5 and math.isnan(rows[1]["wall_time"])  # the second evaluation: no time yet
+    reference_run.write_eval(tmp_path, rows)
+    with open(tmp_path / "eval.csv") as f:
+        read = list(csv.DictReader(f))
+    assert list(read[0]) == list(reference_run.EVAL_COLUMNS) and float(read[1]["episode_return"]) == 300.25
+
+
+def test_runner_without_the_reference_code_is_one_error_line(tmp_path):
+    result = subprocess.run([sys.executable, str(RUNNER), "--output-dir", str(tmp_path / "out"), "--reference-dir",
+                             str(tmp_path / "nothing")], capture_output=True, text=True, env=ENV)
+    assert result.returncode == 2
+    assert result.stderr.strip() == f"error: no reference code in {tmp_path / 'nothing'}: run " \
+                                    "benchmarks/reference/setup.sh first"
+    assert not (tmp_path / "out").exists()
+
+
+def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path):
+    spec = grid.Grid(implementations=("ours", "reference"), teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2),
+                     flags="--total-timesteps 100000 --hidden-dim 256")
+    runs = grid.expand(spec)
+    ours = {r.name: r for r in runs if r.implementation == "ours"}
+    reference = {r.name: r for r in runs if r.implementation == "reference"}
+    assert len(ours) == len(reference) == 4  # 2 ground-truth + 2 oracle runs each
+    assert {f"reference__{name}" for name in ours} == set(reference)
+    for name, run in ours.items():
+        assert reference[f"reference__{name}"].flags == run.flags
+    command = reference["reference__pebble__walker-walk__oracle__fb1000-100__disagreement__uniform__s2"].command(
+        tmp_path / "r", resume=True)
+    assert command[0] == str(RUNNER) and command[-2:] == ["--output-dir", str(tmp_path / "r")]  # never --resume
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "parity-pebble", "--root",
+                             str(tmp_path / "g"), "--dry-run"], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    lines = [shlex.split(line) for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS")]
+    printed = [line for line in lines if line[2] == str(RUNNER)]
+    assert len(printed) == 5 and len(lines) == 10
+    assert printed[0][printed[0].index("--feedback-every") + 1] == "9000"
+    refused = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "custom", "--implementations",
+                              "reference", "--algorithms", "prefppo", "--root", str(tmp_path / "h")],
+                             capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert refused.returncode == 2 and "PEBBLE and SAC only" in refused.stderr
+
+
+def write_run(root, name, seed, curve, implementation="ours"):
+    path = root / name
+    path.mkdir(parents=True)
+    config = {"env_id": "walker-walk", "seed": seed, "teacher": "oracle", "sampler": "disagreement",
+              "schedule": "uniform", "max_feedback": 1000, "feedback_per_session": 100, "ground_truth_reward": False,
+              "total_timesteps": 20000, "implementation": implementation}
+    (path / "config.json").write_text(json.dumps(config))
+    rows = [{"step": 10000 * (i + 1), "episode_return": value, "wall_time": 60.0 * (i + 1),
+             "reward_correlation": 0.5 if implementation == "ours" else "nan"} for i, value in enumerate(curve)]
+    with open(path / "eval.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, reference_run.EVAL_COLUMNS, restval="0")
+        writer.writeheader()
+        writer.writerows(rows)
+    (path / "final_model.pt").write_bytes(b"")
+
+
+def test_report_sets_both_implementations_side_by_side_with_a_verdict(tmp_path):
+    root = tmp_path / "parity"
+    for seed, final in enumerate([100, 110, 120], 1):
+        write_run(root, f"ours_{seed}", seed, [50, final])
+    for seed, final in enumerate([900, 910, 920], 1):
+        write_run(root, f"ref_{seed}", seed, [60, final], implementation="reference")
+    target = tmp_path / "docs" / "parity.md"
+    target.parent.mkdir()
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = target.read_text()
+    assert "**Verdict: not within noise: ours is lower by 800.0 (88% of the reference's mean)" in text
+    assert "| ours | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 80.0 |" in text
+    assert "| reference | 1 2 3 | 910.0 ± 8.2 | 900 910 920 | 485.0 |" in text
+    with open(root / "report" / "parity.csv") as f:
+        row = next(csv.DictReader(f))
+    assert float(row["difference"]) == pytest.approx(-800) and float(row["difference_high"]) < 0
+    assert float(row["ours_wall_minutes"]) == 2.0 and float(row["ours_reward_correlation"]) == 0.5
+    assert row["reference_reward_correlation"] == "nan"
+    figure = root / "report" / "parity_pebble_walker-walk_oracle_1000-100_disagreement_uniform.png"
+    assert figure.read_bytes()[:4] == b"\x89PNG"
+    assert "(../parity/report/parity_pebble_walker-walk" in text
+
+
+def test_equal_arms_are_within_noise():
+    ours, reference = np.array([500.0, 700.0, 600.0]), np.array([650.0, 550.0, 600.0])
+    point, low, high = report.difference_ci(ours, reference, 4000, 0)
+    assert point == 0 and low < 0 < high
+    row = {"difference": (point, low, high), "reference_final_mean": 600.0, "welch_p": report.welch_p(ours, reference)}
+    assert report.verdict(row).startswith("within noise")
+    # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): no verdict either way
+    row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134}
+    assert report.verdict(row).startswith("inconclusive: ours is lower by 176.7")
