@@ -20,7 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 import tyro
 
-from samplers import draw_segments, planned_labels, schedule_sizes, select
+from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
 from sim_teacher import make_teacher
 
 
@@ -129,11 +129,12 @@ class Args:
 
 
 # Paper appendix, Table of PEBBLE hyperparameters (sources of the others: docs/differences.md). Meta-World: feedback
-# every 4950 steps, not the paper's 5000, so that all 200 sessions (10,000 labels) fit in 1M steps (planned_labels)
+# every 4950 steps, not the paper's 5000, so that all 200 sessions (10,000 labels) fit in 1M steps (planned_labels);
+# segments of 50, not the table's 25: the reference's Meta-World scripts never set it, so its runs used 50
 DMC_PRESET = dict(total_timesteps=500_000, max_feedback=1000, feedback_per_session=100, feedback_every=20_000,
                   segment_len=50, hidden_dim=1024, num_layers=2, batch_size=1024, learning_rate=5e-4, reward_epochs=50)
 METAWORLD_PRESET = dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50, feedback_every=4950,
-                        segment_len=25, hidden_dim=256, num_layers=3, batch_size=512, learning_rate=3e-4,
+                        segment_len=50, hidden_dim=256, num_layers=3, batch_size=512, learning_rate=3e-4,
                         reward_epochs=10)
 GYM_PRESET = dict(DMC_PRESET, hidden_dim=256, num_layers=2, batch_size=256, learning_rate=3e-4)
 PRESETS = {"walker-walk": DMC_PRESET, "button-press": METAWORLD_PRESET, "sweep-into": METAWORLD_PRESET,
@@ -717,8 +718,10 @@ if __name__ == "__main__":
     buffer, intrinsic_stats = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device), RunningMeanStd()
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
-    session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     pretrain_end = args.seed_steps + args.unsup_steps
+    steps = session_steps(pretrain_end + 1, args.feedback_every, args.total_timesteps)  # t - 1: steps done before
+    session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps - 1,
+                                   args.total_timesteps)
     spent = planned_labels(session_sizes, pretrain_end + 1, args.feedback_every, args.total_timesteps)
     if spent < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "

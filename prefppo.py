@@ -20,7 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 import tyro
 
-from samplers import draw_segments, planned_labels, schedule_sizes, select
+from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
 from sim_teacher import make_teacher
 
 
@@ -117,7 +117,7 @@ class Args:
     eval_every: int = 50000
     """environment steps between evaluations (checked after each rollout)"""
     eval_episodes: int = 10
-    """episodes per evaluation (reference code: 10)"""
+    """episodes per evaluation (the reference's PrefPPO evaluated none: docs/differences.md 15)"""
     ground_truth_reward: bool = False
     """if toggled, train PPO on the true reward with no teacher (the normalisation denominator)"""
     knn_k: int = 5
@@ -749,8 +749,10 @@ if __name__ == "__main__":
     loss_fn = torch.compile(ppo_loss) if args.compile else ppo_loss  # the eager ppo_loss is the reference
     teacher = make_teacher(args.teacher, seed=teacher_seed,
                            **{name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS})
-    session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session)
     rollout = args.num_envs * args.num_steps
+    steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
+    session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps,
+                                   args.total_timesteps)
     spent = planned_labels(session_sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
     if spent < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {spent} of the {args.max_feedback} labels of --max-feedback fit in {args.total_timesteps} "

@@ -4,7 +4,8 @@ paper Section 4.2 and appendix "Sampling schemes". Arrays in, arrays out: no tor
     e0, s0, e1, s1 = random_pairs(episode_lengths, segment_len=50, n_pairs=1000, rng=rng)
     candidates = draw_segments(episodes, segment_len=50, n_pairs=1000, rng=rng)  # episodes: (obs, actions, rewards)
     chosen = select("disagreement", 100, probs=probs)  # probs (E, M): member i's P[sigma1 > sigma0]
-    sizes = schedule_sizes("decay", budget=1000, per_session=100)
+    steps = session_steps(first_step=10_001, every=20_000, last_step=500_000)
+    sizes = schedule_sizes("decay", budget=1000, per_session=100, steps=steps - 1, total_steps=500_000)
     labels = planned_labels(sizes, first_step=10_001, every=20_000, last_step=500_000)
 """
 
@@ -124,49 +125,58 @@ def select(
     return most_uncertain[k_center_greedy(features[most_uncertain], n_query, labeled_features, rng)]
 
 
-def schedule_sizes(name: str, budget: int, per_session: int) -> np.ndarray:
-    """Number of queries of each feedback session (paper Section 4.2); together exactly `budget`.
+def schedule_sizes(name: str, budget: int, per_session: int, steps=None, total_steps: int | None = None) -> np.ndarray:
+    """Number of queries of each feedback session (paper Section 4.2), as the reference code's schedules (the runs of
+    the paper's Fig. 4): a session after t of T environment steps asks
 
-    With S = budget / per_session sessions in the uniform schedule, session i (from 0) asks
       uniform:  per_session
-      decay:    2 * per_session * tau / (tau + i),   tau = S / 2.513   (the paper's T / (t + T))
-      increase: per_session / 2 * (tau + i) / tau,   tau = (S - 1) / 2 (the paper's (T + t) / T)
-    i.e. the paper's curves with time counted in sessions and its T a number of sessions. tau is
-    chosen so that each schedule spends the budget in about S sessions, like the uniform one
-    (decay: 2 tau ln(1 + S / tau) = S), and the first session is 2x (decay) or 0.5x (increase)
-    the uniform size. Sizes are rounded (at least 1); the last session takes what is left."""
+      decay:    int(2 * per_session * (T - t) / T)       (the paper's T / (t + T) shape, linear in t)
+      increase: int(per_session / 2 * T / (T - t + 1))
+
+    (the reference's reward_batch x frac, with the 2x and 0.5x reward_batch of its walker scripts), at least 1 and
+    at most what is left of the budget, the last session taking the rest. `steps`: t of each planned session
+    (session_steps); decay and increase need them and total_steps T. Uniform spends exactly `budget`; decay and
+    increase spend it when the run has sessions enough, else what those sessions ask."""
     if name not in SCHEDULES:
         raise ValueError(f"unknown schedule {name!r}: choose one of {', '.join(SCHEDULES)}")
     if budget < 1 or per_session < 1:
         raise ValueError(f"budget and per_session must be >= 1, got budget={budget}, per_session={per_session}")
     if per_session > budget:
         raise ValueError(f"per_session ({per_session}) cannot exceed budget ({budget})")
-    n_uniform = budget / per_session
-    decay_tau = n_uniform / 2.513
-    increase_tau = max((n_uniform - 1) / 2, 0.5)
-
-    def curve(i: int) -> float:
-        if name == "decay":
-            return 2 * per_session * decay_tau / (decay_tau + i)
-        if name == "increase":
-            return 0.5 * per_session * (increase_tau + i) / increase_tau
-        return per_session
-
+    if name == "uniform":
+        return np.array([per_session] * (budget // per_session) + ([budget % per_session] if budget % per_session
+                                                                  else []), dtype=np.int64)
+    if steps is None or total_steps is None:
+        raise ValueError(f"schedule {name!r} needs the steps of the sessions and total_steps")
     sizes, remaining = [], budget
-    while remaining > 0:
-        size = min(max(1, round(curve(len(sizes)))), remaining)
-        sizes.append(size)
-        remaining -= size
+    for t in steps:
+        if not 0 <= t < total_steps:
+            raise ValueError(f"session steps must be in [0, total_steps={total_steps}), got {t}")
+        if name == "decay":
+            size = int(2 * per_session * (total_steps - t) / total_steps)
+        else:
+            size = int(per_session / 2 * total_steps / (total_steps - t + 1))
+        sizes.append(min(max(1, size), remaining))
+        remaining -= sizes[-1]
+        if remaining == 0:
+            break
     return np.array(sizes, dtype=np.int64)
 
 
+def session_steps(first_step: int, every: int, last_step: int, granularity: int = 1) -> np.ndarray:
+    """The steps of a run's feedback sessions: first_step, then `every` or more steps after the one before, each at
+    the next multiple of `granularity` steps (a rollout; 1: at any step), up to last_step."""
+    steps, step = [], -(-first_step // granularity) * granularity
+    while step <= last_step:
+        steps.append(step)
+        step = -(-(step + every) // granularity) * granularity
+    return np.array(steps, dtype=np.int64)
+
+
 def planned_labels(session_sizes, first_step: int, every: int, last_step: int, granularity: int = 1) -> int:
-    """How many labels a run asks for: its sessions come at first_step, then `every` or more steps after the one
-    before, each at the next multiple of `granularity` steps (a rollout; 1: at any step), up to last_step, while
-    the schedule lasts. Assumes a complete episode at the first session (a later first session asks fewer)."""
-    step, n_sessions = -(-first_step // granularity) * granularity, 0
-    while step <= last_step and n_sessions < len(session_sizes):
-        step, n_sessions = -(-(step + every) // granularity) * granularity, n_sessions + 1
+    """How many labels a run asks for: the sizes of the sessions that fit (session_steps), while the schedule lasts.
+    Assumes a complete episode at the first session (a later first session asks fewer)."""
+    n_sessions = len(session_steps(first_step, every, last_step, granularity))
     return int(np.sum(session_sizes[:n_sessions]))
 
 

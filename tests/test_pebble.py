@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import pebble
-from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes
+from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes, session_steps
 from sim_teacher import TEACHERS, make_teacher
 from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
                            session_lines, start_script)
@@ -193,13 +193,25 @@ def test_episode_seeds_differ_between_run_seeds_streams_and_episodes():
     assert pebble.episode_seed(1, 0, 7) == pebble.episode_seed(1, 0, 7)  # reproducible
 
 
+def test_metaworld_segments_are_those_of_the_reference_runs_not_the_table():
+    # the reference's Meta-World scripts never set `segment`: its runs used the default 50, the table says 25
+    for env_id in ("button-press", "sweep-into", "walker-walk", "quadruped-walk"):
+        assert pebble.resolve(pebble.Args(env_id=env_id)).segment_len == 50
+    assert pebble.resolve(pebble.Args(env_id="button-press", segment_len=25)).segment_len == 25
+
+
 @pytest.mark.parametrize("schedule", ["uniform", "decay", "increase"])
 def test_presets_spend_their_whole_budget(schedule):
     first = pebble.Args.seed_steps + pebble.Args.unsup_steps + 1  # pebble's first session: right after pre-training
     for preset in (pebble.METAWORLD_PRESET, pebble.DMC_PRESET, pebble.PRESETS["quadruped-walk"]):
-        sizes = schedule_sizes(schedule, preset["max_feedback"], preset["feedback_per_session"])
+        steps = session_steps(first, preset["feedback_every"], preset["total_timesteps"])
+        sizes = schedule_sizes(schedule, preset["max_feedback"], preset["feedback_per_session"], steps - 1,
+                               preset["total_timesteps"])
         spent = planned_labels(sizes, first, preset["feedback_every"], preset["total_timesteps"])
-        assert spent == preset["max_feedback"]  # Meta-World: 10,000 in 200 sessions; walker-walk: 1000
+        if preset is pebble.METAWORLD_PRESET and schedule == "decay":  # as the reference's: sessions shrink
+            assert spent == 9852  # linearly to ~1 query at 1M steps, 200 sessions ask 98.5% of the budget
+        else:  # Meta-World: 10,000 in 200 sessions; walker-walk: 1000
+            assert spent == preset["max_feedback"]
     # the paper's (and reference code's) every 5000 steps on Meta-World: 198 sessions of 50 fit in 1M steps
     assert planned_labels(schedule_sizes("uniform", 10_000, 50), first, 5000, 1_000_000) == 9900
 
@@ -393,6 +405,18 @@ def test_every_teacher_and_sampler_runs_a_full_schedule(tmp_path, teacher, sampl
         assert keep.all()
     if teacher == "equal":
         assert (y == 0.5).any()
+
+
+@pytest.mark.parametrize("schedule, sizes", [("decay", [12, 7, 1]), ("increase", [7, 13, 10])])
+def test_decay_and_increase_sessions_ask_the_reference_codes_numbers(tmp_path, schedule, sizes):
+    # sessions after 400, 700, 1000 of T = 1100 steps, 10 per session: decay int(20 (T - t) / T) = 12, 7, 1 (20 of
+    # the 30 labels); increase int(5 T / (T - t + 1)) = 7, 13, then 54 capped at the 10 left
+    out = tmp_path / schedule
+    result = run_pebble(out, *PENDULUM, "--schedule", schedule)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert [len(s["y"]) for s in saved_labels(out)] == sizes
+    assert schedule_sizes(schedule, 30, 10, np.array([400, 700, 1000]), 1100).tolist() == sizes
+    assert ("note: only 20 of the 30 labels" in result.stdout) == (schedule == "decay")
 
 
 def test_all_queries_skipped_keeps_exploring_without_training_on_nothing(tmp_path):

@@ -10,7 +10,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from samplers import (SAMPLERS, SCHEDULES, draw_segments, planned_labels, random_pairs, schedule_sizes,  # noqa: E402
+from samplers import (SAMPLERS, SCHEDULES, draw_segments, planned_labels, random_pairs, schedule_sizes, session_steps,  # noqa: E402
                       select)
 
 
@@ -345,69 +345,50 @@ COMBOS = [(500, 50), (1000, 100), (2000, 200), (10000, 50), (20000, 100), (7, 3)
 
 
 @pytest.mark.parametrize("budget, per_session", COMBOS)
-@pytest.mark.parametrize("name", ["uniform", "decay", "increase"])
-def test_schedule_sums_exactly_to_budget_with_positive_integer_sizes(name, budget, per_session):
-    sizes = schedule_sizes(name, budget, per_session)
-    assert np.issubdtype(sizes.dtype, np.integer)
-    assert sizes.sum() == budget
-    assert (sizes >= 1).all()
-
-
-@pytest.mark.parametrize("budget, per_session", COMBOS)
 def test_uniform_schedule_is_per_session_then_remainder(budget, per_session):
     k, remainder = divmod(budget, per_session)
     expected = [per_session] * k + ([remainder] if remainder else [])
-    assert schedule_sizes("uniform", budget, per_session).tolist() == expected
+    sizes = schedule_sizes("uniform", budget, per_session)
+    assert sizes.tolist() == expected and np.issubdtype(sizes.dtype, np.integer) and sizes.sum() == budget
 
 
-@pytest.mark.parametrize("budget, per_session", [(500, 50), (1000, 100), (2000, 200), (10000, 50), (20000, 100), (100, 7)])
-def test_decay_starts_at_twice_per_session_and_never_increases(budget, per_session):
-    sizes = schedule_sizes("decay", budget, per_session)
-    assert sizes[0] == 2 * per_session
-    assert (np.diff(sizes) <= 0).all(), sizes
+def test_decay_and_increase_are_the_reference_codes_formulas_computed_by_hand():
+    # T = 1000, sessions after t = 100, 300, 500, 700, 900 steps, 10 per session, budget 50.
+    # decay: int(2 * 10 * (T - t) / T) = 18, 14, 10, 6, 2 (sum 50)
+    # increase: int(10 / 2 * T / (T - t + 1)) = int(5.549), int(7.13), int(9.98), int(16.6) = 5, 7, 9, 16; then
+    # int(49.5) = 49 capped at the 13 left of the budget
+    steps = [100, 300, 500, 700, 900]
+    assert schedule_sizes("decay", 50, 10, steps, 1000).tolist() == [18, 14, 10, 6, 2]
+    assert schedule_sizes("increase", 50, 10, steps, 1000).tolist() == [5, 7, 9, 16, 13]
+    # a budget spent early ends the schedule; one the sessions cannot spend is what they ask
+    assert schedule_sizes("decay", 30, 10, steps, 1000).tolist() == [18, 12]
+    assert schedule_sizes("decay", 100, 10, steps, 1000).sum() == 50
+    # never a session of 0: late in a decaying run int(...) would be 0, the session asks 1
+    assert schedule_sizes("decay", 50, 10, [999], 1000).tolist() == [1]
 
 
-@pytest.mark.parametrize("budget, per_session", [(500, 50), (1000, 100), (2000, 200), (10000, 50), (20000, 100), (100, 8)])
-def test_increase_starts_at_half_per_session_and_never_decreases_before_last(budget, per_session):
-    sizes = schedule_sizes("increase", budget, per_session)
-    assert sizes[0] == per_session // 2
-    assert (np.diff(sizes[:-1]) >= 0).all(), sizes
-    # it does increase: the last full session asks more than per_session
-    assert sizes[:-1].max() > per_session
+def test_walker_walk_preset_schedules_are_the_reference_runs():
+    """The paper's walker-walk setting (1000 labels, 100 per session every 20K steps from step 10K, 500K steps) with
+    the reference's walker scripts (reward_batch 200 for decay, 50 for increase)."""
+    steps = session_steps(10_001, 20_000, 500_000) - 1  # pebble.py: steps done before each session
+    assert steps[:3].tolist() == [10_000, 30_000, 50_000] and len(steps) == 25
+    assert schedule_sizes("decay", 1000, 100, steps, 500_000).tolist() == [196, 188, 180, 172, 164, 100]
+    assert schedule_sizes("increase", 1000, 100, steps, 500_000).tolist() == [51, 53, 55, 58, 60, 64, 67, 71, 75, 80,
+                                                                             86, 92, 99, 89]
 
 
-def test_increase_first_size_for_odd_per_session_is_rounded_half():
-    assert schedule_sizes("increase", 100, 7)[0] in (3, 4)
-    assert schedule_sizes("increase", 1, 1)[0] == 1
-
-
-def test_decay_first_session_capped_by_budget():
-    # budget 7, per_session 3: 2x would be 6
-    assert schedule_sizes("decay", 7, 3).tolist()[0] == 6
-    assert schedule_sizes("decay", 5, 3).tolist() == [5]
-
-
-@pytest.mark.parametrize("budget, per_session", [(500, 50), (1000, 100), (2000, 200), (10000, 50), (20000, 100), (1000, 10)])
 @pytest.mark.parametrize("name", ["decay", "increase"])
-def test_decay_and_increase_spend_the_budget_in_about_as_many_sessions_as_uniform(name, budget, per_session):
-    n_uniform = len(schedule_sizes("uniform", budget, per_session))
-    n = len(schedule_sizes(name, budget, per_session))
-    assert abs(n - n_uniform) <= 0.2 * n_uniform, (n, n_uniform)
+def test_decay_and_increase_need_the_steps_of_the_sessions(name):
+    with pytest.raises(ValueError, match="needs the steps of the sessions and total_steps"):
+        schedule_sizes(name, 100, 10)
+    with pytest.raises(ValueError, match="session steps must be in"):
+        schedule_sizes(name, 100, 10, [1000], 1000)
 
 
-@pytest.mark.parametrize("budget, per_session", [(1000, 100), (20000, 100), (10000, 50)])
-def test_decay_and_increase_follow_the_documented_curves(budget, per_session):
-    """decay: 2 p tau / (tau + i), tau = S / 2.513 (paper's T / (t + T));
-    increase: p / 2 * (tau + i) / tau, tau = (S - 1) / 2 (paper's (T + t) / T); rounded."""
-    s = budget / per_session
-    decay = schedule_sizes("decay", budget, per_session)[:-1]
-    i = np.arange(len(decay))
-    tau = s / 2.513
-    assert np.abs(decay - 2 * per_session * tau / (tau + i)).max() <= 0.5 + 1e-9
-    increase = schedule_sizes("increase", budget, per_session)[:-1]
-    i = np.arange(len(increase))
-    tau = (s - 1) / 2
-    assert np.abs(increase - 0.5 * per_session * (tau + i) / tau).max() <= 0.5 + 1e-9
+def test_session_steps_follow_the_plan_of_the_runs():
+    assert session_steps(11, 30, 100).tolist() == [11, 41, 71]
+    assert session_steps(32_000, 32_000, 99_999, granularity=3000).tolist() == [33_000, 66_000, 99_000]
+    assert session_steps(11, 30, 10).tolist() == []
 
 
 # --------------------------------------------------------------------------------------------
