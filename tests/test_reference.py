@@ -113,6 +113,34 @@ def test_the_reference_results_are_read_back_in_our_columns(tmp_path):
     assert list(read[0]) == list(reference_run.EVAL_COLUMNS) and float(read[1]["episode_return"]) == 300.25
 
 
+def test_the_reference_networks_load_into_our_classes_and_are_evaluated_as_ours(tmp_path):
+    import pebble
+    import torch
+
+    torch.manual_seed(0)
+    # the reference's modules as it saves them: actor.trunk, critic.Q1/Q2, reward members as bare Sequentials
+    actor = torch.nn.Sequential(torch.nn.Linear(3, 8), torch.nn.ReLU(), torch.nn.Linear(8, 2))
+    torch.save({f"trunk.{key}": value for key, value in actor.state_dict().items()}, tmp_path / "actor_11.pt")
+    critic = pebble.TwinCritic(3, 1, 8, 1)
+    torch.save({key.replace("q1.", "Q1.").replace("q2.", "Q2."): value for key, value in critic.state_dict().items()},
+               tmp_path / "critic_11.pt")
+    reward = pebble.RewardEnsemble(3, 1, 2)
+    for i, member in enumerate(reward.members):
+        torch.save(member[0].state_dict(), tmp_path / f"reward_model_11_{i}.pt")
+    model = reference_run.final_model(tmp_path, 11)
+    ours = pebble.Actor(3, 1, 8, 1)
+    ours.load_state_dict(model["actor"])
+    loaded = pebble.RewardEnsemble(3, 1, 2)
+    loaded.load_state_dict(model["reward_model"])
+    pebble.TwinCritic(3, 1, 8, 1).load_state_dict(model["critic"])
+    x = torch.randn(5, 3)
+    assert torch.equal(ours.net(x), actor(x))
+    obs_action = torch.randn(5, 4)
+    assert torch.equal(loaded(obs_action), reward(obs_action))
+    torch.save(model, tmp_path / "final_model.pt")
+    assert set(torch.load(tmp_path / "final_model.pt", weights_only=True)) == {"actor", "critic", "reward_model"}
+
+
 def test_runner_without_the_reference_code_is_one_error_line(tmp_path):
     result = subprocess.run([sys.executable, str(RUNNER), "--output-dir", str(tmp_path / "out"), "--reference-dir",
                              str(tmp_path / "nothing")], capture_output=True, text=True, env=ENV)

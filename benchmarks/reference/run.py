@@ -9,9 +9,10 @@ implementations alike (docs/parity.md):
 
 The output directory gets config.json (pebble.py's fields, with "implementation": "reference" and the reference's
 command line), bpref/ (the reference's own files), eval.csv in pebble.py's columns (wall_time from this wrapper's
-clock at each evaluation line; the reference records no reward correlation, std or overhead: nan) and, at the end,
-final_model.pt (the reference's actor, critic and reward models as state dicts). The reference cannot resume: a run
-stopped part-way is started afresh by the grid.
+clock at each evaluation line; the reference records no std or overhead: nan) and, at the end, final_model.pt (the
+reference's actor, critic and reward models as pebble.py's state dicts) and, in the last row, the final reward
+correlation measured by pebble.py's evaluate on those networks. The reference cannot resume: a run stopped part-way
+is started afresh by the grid.
 """
 
 import csv
@@ -163,15 +164,38 @@ def write_eval(out: Path, rows: list[dict]):
 
 
 def final_model(bpref_dir: Path, step: int) -> dict:
-    """The reference's saved networks at its last step, as one dict of state dicts (loads with weights_only=True)."""
+    """The reference's saved networks at its last step as pebble.py's final_model.pt: the same architectures, so
+    only the keys are renamed (its actor's trunk is our net, Q1/Q2 our q1/q2, reward member i our members.i.0)."""
     import torch
 
-    load = lambda name: torch.load(bpref_dir / name, map_location="cpu", weights_only=True)  # noqa: E731
-    model = {"actor": load(f"actor_{step}.pt"), "critic": load(f"critic_{step}.pt")}
+    def load(name):
+        return torch.load(bpref_dir / name, map_location="cpu", weights_only=True)
+
+    model = {"actor": {key.replace("trunk.", "net.", 1): value for key, value in load(f"actor_{step}.pt").items()},
+             "critic": {key.replace("Q1.", "q1.", 1).replace("Q2.", "q2.", 1): value
+                        for key, value in load(f"critic_{step}.pt").items()}}
     members = sorted(bpref_dir.glob(f"reward_model_{step}_*.pt"))
     if members:
-        model["reward_model"] = [load(path.name) for path in members]
+        model["reward_model"] = {f"members.{i}.0.{key}": value for i, path in enumerate(members)
+                                 for key, value in load(path.name).items()}
     return model
+
+
+def final_reward_correlation(model: dict, args: Args) -> float:
+    """The Pearson correlation of the reference's final learned reward with the true one along --eval-episodes
+    episodes of its final actor's mean action, measured by pebble.py's evaluate (the episodes of ours' first
+    evaluation seeds), so that both implementations' correlations are the same measure."""
+    import pebble
+    import torch
+
+    env, _ = pebble.make_env(args.env_id)
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    actor = pebble.Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers)
+    actor.load_state_dict(model["actor"])
+    reward_model = pebble.RewardEnsemble(obs_dim, action_dim, len({key.split(".")[1] for key in model["reward_model"]}))
+    reward_model.load_state_dict(model["reward_model"])
+    seeds = [pebble.episode_seed(args.seed, pebble.EVAL_STREAM, j) for j in range(args.eval_episodes)]
+    return pebble.evaluate(actor, reward_model, env, seeds, torch.device("cpu"))["reward_correlation"]
 
 
 def main(args: Args) -> int:
@@ -218,7 +242,14 @@ def main(args: Args) -> int:
         return 1
     import torch
 
-    torch.save(final_model(out / "bpref", args.total_timesteps + 1), out / "final_model.pt")
+    model = final_model(out / "bpref", args.total_timesteps + 1)
+    if "reward_model" in model:
+        rows = converted_rows(out / "bpref", wall_times)
+        rows[-1]["reward_correlation"] = final_reward_correlation(model, args)
+        write_eval(out, rows)
+        print(f"final reward correlation (pebble.py's evaluate, reference's networks): "
+              f"{rows[-1]['reward_correlation']:.3f}")
+    torch.save(model, out / "final_model.pt")
     print(f"done: {len(wall_times)} evaluations in {(time.time() - start) / 60:.1f} min; outputs in {out}")
     return 0
 
