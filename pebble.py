@@ -573,6 +573,31 @@ def save_file(path: str, data: bytes):
             os.remove(f"{path}.tmp")
 
 
+def plain(tree):
+    """numpy arrays as tensors and numpy scalars as Python numbers, through lists, tuples and dicts: a checkpoint
+    of plain data, which torch.load(..., weights_only=True) reads without running code from the file."""
+    if isinstance(tree, np.ndarray):
+        return torch.tensor(tree)
+    if isinstance(tree, np.generic):
+        return tree.item()
+    if isinstance(tree, (list, tuple, dict)):
+        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
+        converted = {key: plain(value) for key, value in items}
+        return converted if isinstance(tree, dict) else type(tree)(converted.values())
+    return tree
+
+
+def unplain(tree):
+    """plain()'s inverse for the parts the loop keeps in numpy: tensors back to arrays."""
+    if isinstance(tree, torch.Tensor):
+        return tree.numpy()
+    if isinstance(tree, (list, tuple, dict)):
+        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
+        converted = {key: unplain(value) for key, value in items}
+        return converted if isinstance(tree, dict) else type(tree)(converted.values())
+    return tree
+
+
 EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
                 "wall_time", "overhead_seconds")
 
@@ -695,7 +720,7 @@ if __name__ == "__main__":
 
         wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=config, name=run_name, save_code=True)
     checkpoint_path, eval_path = os.path.join(output_dir, "checkpoint.pt"), os.path.join(output_dir, "eval.csv")
-    checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False) if args.resume else None
+    checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True) if args.resume else None
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
@@ -737,9 +762,10 @@ if __name__ == "__main__":
     progress = Progress(next_feedback_step=pretrain_end + 1)
     learners = {"actor": actor, "critic": critic, "critic_target": critic_target, "reward_model": reward_model,
                 "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
-                "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer, "buffer": buffer}
+                "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer, "buffer": buffer,
+                "teacher": teacher}
     if checkpoint:  # --resume: every part back, key by key
-        progress = Progress(**checkpoint["progress"])
+        progress = Progress(**checkpoint["progress"] | {"current": unplain(checkpoint["progress"]["current"])})
         print(f"resuming from the checkpoint at step {progress.global_step}")
         for name, part in learners.items():
             part.load_state_dict(checkpoint[name])
@@ -747,8 +773,9 @@ if __name__ == "__main__":
             log_alpha.copy_(checkpoint["log_alpha"])
         vars(intrinsic_stats).update(checkpoint["intrinsic_stats"])
         preferences = {key: value.to(device) for key, value in checkpoint["preferences"].items()}
-        teacher, rng, action_rng = checkpoint["teacher"], checkpoint["rng"], checkpoint["action_rng"]
-        episodes.extend(checkpoint["episodes"])
+        rng.bit_generator.state = checkpoint["rng"]
+        action_rng.bit_generator.state = checkpoint["action_rng"]
+        episodes.extend(unplain(checkpoint["episodes"]))
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
@@ -774,10 +801,11 @@ if __name__ == "__main__":
     def checkpoint_state() -> dict:
         """Everything the run needs to go on exactly after this step, but the env (reset with its episode's seed,
         then the episode's actions replayed)."""
-        return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
+        return {"progress": plain(asdict(progress) | {"wall_time": time.time() - start_time}),
                 **{name: part.state_dict() for name, part in learners.items()}, "log_alpha": log_alpha.detach(),
-                "intrinsic_stats": vars(intrinsic_stats), "preferences": preferences, "teacher": teacher, "rng": rng,
-                "action_rng": action_rng, "episodes": list(episodes), "torch_rng": torch.get_rng_state(),
+                "intrinsic_stats": vars(intrinsic_stats), "preferences": preferences,
+                "rng": rng.bit_generator.state, "action_rng": action_rng.bit_generator.state,
+                "episodes": plain(list(episodes)), "torch_rng": torch.get_rng_state(),
                 "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
 
     # Main loop: Algorithm 3 (PEBBLE) with Algorithm 2 (unsupervised pre-training) for the first steps

@@ -602,6 +602,31 @@ def save_file(path: str, data: bytes):
             os.remove(f"{path}.tmp")
 
 
+def plain(tree):
+    """numpy arrays as tensors and numpy scalars as Python numbers, through lists, tuples and dicts: a checkpoint
+    of plain data, which torch.load(..., weights_only=True) reads without running code from the file."""
+    if isinstance(tree, np.ndarray):
+        return torch.tensor(tree)
+    if isinstance(tree, np.generic):
+        return tree.item()
+    if isinstance(tree, (list, tuple, dict)):
+        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
+        converted = {key: plain(value) for key, value in items}
+        return converted if isinstance(tree, dict) else type(tree)(converted.values())
+    return tree
+
+
+def unplain(tree):
+    """plain()'s inverse for the parts the loop keeps in numpy: tensors back to arrays."""
+    if isinstance(tree, torch.Tensor):
+        return tree.numpy()
+    if isinstance(tree, (list, tuple, dict)):
+        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
+        converted = {key: unplain(value) for key, value in items}
+        return converted if isinstance(tree, dict) else type(tree)(converted.values())
+    return tree
+
+
 EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
                 "wall_time", "overhead_seconds")
 
@@ -728,7 +753,7 @@ if __name__ == "__main__":
 
         wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=config, name=run_name, save_code=True)
     checkpoint_path, eval_path = os.path.join(output_dir, "checkpoint.pt"), os.path.join(output_dir, "eval.csv")
-    checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False) if args.resume else None
+    checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True) if args.resume else None
     writer = SummaryWriter(output_dir, purge_step=checkpoint["progress"]["global_step"] + 1 if checkpoint else None)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in config.items()))
 
@@ -768,18 +793,18 @@ if __name__ == "__main__":
     progress = Progress(episodes=[0] * args.num_envs, current=[([], [], []) for _ in range(args.num_envs)],
                         next_feedback_step=args.unsup_steps, next_checkpoint_step=args.checkpoint_every)
     learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "optimizer": optimizer,
-                "reward_optimizer": reward_optimizer}
+                "reward_optimizer": reward_optimizer, "teacher": teacher}
     if checkpoint:  # --resume: every part back, key by key
-        progress = Progress(**checkpoint["progress"])
+        progress = Progress(**checkpoint["progress"] | {"current": unplain(checkpoint["progress"]["current"])})
         print(f"resuming from the checkpoint at step {progress.global_step}")
         for name, part in learners.items():
             part.load_state_dict(checkpoint[name])
-        vars(obs_stats).update(checkpoint["obs_stats"])
+        vars(obs_stats).update(unplain(checkpoint["obs_stats"]))
         knn_reward.states = checkpoint["knn_states"].to(device)
-        vars(knn_reward.stats).update(checkpoint["knn_stats"])
+        vars(knn_reward.stats).update(unplain(checkpoint["knn_stats"]))
         preferences = {key: value.to(device) for key, value in checkpoint["preferences"].items()}
-        teacher, rng = checkpoint["teacher"], checkpoint["rng"]
-        episodes.extend(checkpoint["episodes"])
+        rng.bit_generator.state = checkpoint["rng"]
+        episodes.extend(unplain(checkpoint["episodes"]))
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
@@ -811,10 +836,11 @@ if __name__ == "__main__":
     def checkpoint_state() -> dict:
         """Everything the run needs to go on exactly after this rollout, but the envs (each reset with its episode's
         seed, then the episode's actions replayed) and gSDE's matrices (each rollout draws new ones)."""
-        return {"progress": asdict(progress) | {"wall_time": time.time() - start_time},
-                **{name: part.state_dict() for name, part in learners.items()}, "obs_stats": vars(obs_stats),
-                "knn_states": knn_reward.states.cpu(), "knn_stats": vars(knn_reward.stats), "preferences": preferences,
-                "teacher": teacher, "rng": rng, "episodes": list(episodes), "torch_rng": torch.get_rng_state(),
+        return {"progress": plain(asdict(progress) | {"wall_time": time.time() - start_time}),
+                **{name: part.state_dict() for name, part in learners.items()}, "obs_stats": plain(vars(obs_stats)),
+                "knn_states": knn_reward.states.cpu(), "knn_stats": plain(vars(knn_reward.stats)),
+                "preferences": preferences, "rng": rng.bit_generator.state, "episodes": plain(list(episodes)),
+                "torch_rng": torch.get_rng_state(),
                 "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
 
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (pre-training) for the first unsup_steps
@@ -987,5 +1013,6 @@ if __name__ == "__main__":
     print(f"done: {progress.counts} (updates_on_learned_reward: the true reward with --ground-truth-reward), "
           f"{progress.sessions_done} feedback sessions, {progress.feedback_used} queries; outputs in {output_dir}")
     torch.save({"actor": actor.state_dict(), "critic": critic.state_dict(), "reward_model": reward_model.state_dict(),
-                "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}, os.path.join(output_dir, "final_model.pt"))
+                "obs_mean": torch.tensor(obs_stats.mean), "obs_var": torch.tensor(obs_stats.var)},
+               os.path.join(output_dir, "final_model.pt"))
     writer.close()

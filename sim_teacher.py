@@ -64,6 +64,19 @@ class SimTeacher:
         # rewards are >= 0) the equal threshold uses |R_avg|, so the Equal teacher still says "equal".
         self.delta_equal = self.eps_equal * abs(scaled_return)
 
+    def state_dict(self) -> dict:
+        """Plain data, as torch modules' state_dict: the fields, thresholds and the generator's state (what a
+        checkpoint saves; it loads with torch.load(..., weights_only=True))."""
+        names = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "delta_skip", "delta_equal")
+        return {name: getattr(self, name) for name in names} | {"rng": self.rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Back to the teacher that state_dict() saw: the same labels from here on."""
+        for name, value in state.items():
+            if name != "rng":
+                setattr(self, name, value)
+        self.rng.bit_generator.state = state["rng"]
+
     def label(self, rewards0: np.ndarray, rewards1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Algorithm 1 on N queries at once: true rewards (N, H) of both segments -> (y, keep)."""
         rewards0 = np.asarray(rewards0, dtype=np.float64)

@@ -346,7 +346,7 @@ def load_final_model(run: Run) -> tuple:
     module, config = importlib.import_module(run.algorithm), run.config
     env, _ = module.make_env(config["env_id"])
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    saved = torch.load(run.path / "final_model.pt", map_location="cpu", weights_only=False)
+    saved = torch.load(run.path / "final_model.pt", map_location="cpu", weights_only=True)
     actor = build(module.Actor, obs_dim, action_dim, config)
     actor.load_state_dict(saved["actor"])
     reward_model = build(module.RewardEnsemble, obs_dim, action_dim, config, size=config["reward_ensemble_size"])
@@ -354,7 +354,7 @@ def load_final_model(run: Run) -> tuple:
     obs_stats = None
     if "obs_mean" in saved:  # prefppo: the policy sees normalised observations, the reward model raw ones
         obs_stats = module.RunningMeanStd(obs_dim)
-        obs_stats.mean, obs_stats.var = saved["obs_mean"], saved["obs_var"]
+        obs_stats.mean, obs_stats.var = saved["obs_mean"].numpy(), saved["obs_var"].numpy()
     return module, env, actor, reward_model, obs_stats
 
 

@@ -450,7 +450,7 @@ def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rat
     result = run_pebble(out, *PENDULUM, "--learning-rate", "1e-12", "--checkpoint-every", "1100")
     assert result.returncode == 0, result.stderr[-3000:]
     assert finished_counts(result.stdout)["critic_resets"] == 1  # the checkpoint's critic is the reset one
-    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
     for name in ("actor", "critic", "critic_target"):
         assert_orthogonal_with_zero_biases(saved[name], atol=1e-6, bias_atol=1e-6)
     lrs = {name: saved[f"{name}_optimizer"]["param_groups"][0]["lr"] for name in ("actor", "critic", "alpha")}

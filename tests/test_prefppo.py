@@ -417,7 +417,7 @@ def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     # 2 pre-training rollouts of 3 epochs, then 4 rollouts of --update-epochs 2 (TINY)
     assert counts == {"updates_on_knn_reward": 2, "updates_on_learned_reward": 4, "value_resets": 1, "ppo_epochs": 14}
     assert not session_lines(result.stdout) and not saved_labels(out)
-    log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
+    log_std = torch.load(out / "final_model.pt", weights_only=True)["actor"]["log_std"]
     assert log_std.shape == (32, 1) and log_std.any()  # gSDE by default: hidden 32 (TINY) x 1 action, trained
 
 
@@ -427,7 +427,7 @@ def test_no_use_sde_trains_a_state_independent_std_with_the_compiled_loss(tmp_pa
                          "--compile")
     assert result.returncode == 0, result.stderr[-3000:]
     assert finished_counts(result.stdout)["ppo_epochs"] == 6 and json.loads((out / "config.json").read_text())["compile"]
-    log_std = torch.load(out / "final_model.pt", weights_only=False)["actor"]["log_std"]
+    log_std = torch.load(out / "final_model.pt", weights_only=True)["actor"]["log_std"]
     assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
 

@@ -85,7 +85,7 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path
     stdout, stderr = process.communicate(timeout=120)
     assert process.returncode == 128 + signal.SIGTERM, stderr[-3000:]
     assert "SIGTERM: checkpoint saved at step" in stdout and "Traceback" not in stderr
-    saved = torch.load(out / "checkpoint.pt", weights_only=False)
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["progress"]["sessions_done"] >= 1
 
     result = run_script(script, out, "--resume", str(out))
@@ -111,7 +111,7 @@ def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(modu
             f"m.save_file({str(path)!r}, bytes(5000))\n")
     killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
     assert killed.returncode == -signal.SIGKILL
-    assert torch.load(path, weights_only=False)["step"] == 1
+    assert torch.load(path, weights_only=True)["step"] == 1
 
 
 @pytest.mark.parametrize("env_id", ["walker-walk", "button-press", "tests.toy_envs:ConstantPenalty-v0"])
@@ -180,7 +180,7 @@ def test_a_diverging_loss_stops_the_run_with_a_finite_checkpoint(script, flags, 
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: non-finite {quantity} (inf) at step "), result.stderr
     assert "the state at the failure is in" in lines[0]
-    saved = torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)
+    saved = torch.load(out / "checkpoint_nonfinite.pt", weights_only=True)
     for name in ("actor", "critic"):  # checked before the optimizer step: the networks are still finite
         assert all(torch.isfinite(t).all() for t in saved[name].values())
 
@@ -209,8 +209,8 @@ def test_prefppo_diverging_loss_keeps_the_last_good_checkpoint(tmp_path):
     result = prefppo_stopped_by("tests.toy_envs:HugeReward-v0", 80, out)
     assert result.stderr.startswith("error: non-finite PPO loss (inf) at step 160;"), result.stderr
     assert result.stdout.count("checkpoint.pt saved") == 1
-    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 80  # untouched
-    failed = torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["progress"]["global_step"] == 80  # untouched
+    failed = torch.load(out / "checkpoint_nonfinite.pt", weights_only=True)
     assert failed["progress"]["global_step"] == 160
     for name in ("actor", "critic"):  # checked before the optimizer step: the networks are still finite
         assert all(torch.isfinite(t).all() for t in failed[name].values())
@@ -222,8 +222,8 @@ def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
     out = tmp_path / "run"
     result = prefppo_stopped_by("tests.toy_envs:NaNSeededEpisode-v0", 240, out)
     assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 320;")
-    assert torch.load(out / "checkpoint.pt", weights_only=False)["progress"]["global_step"] == 240
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=False)["progress"]["global_step"] == 320
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["progress"]["global_step"] == 240
+    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=True)["progress"]["global_step"] == 320
     # the last good checkpoint resumes: the envs replay their episodes and meet the NaN at the same step again
     resumed = run_script("prefppo.py", out, "--resume", str(out))
     assert resumed.returncode == 3 and "resuming from the checkpoint at step 240" in resumed.stdout

@@ -557,3 +557,23 @@ def test_equal_threshold_uses_absolute_return_on_negative_return_tasks():
     assert teacher.delta_equal == pytest.approx(2.0)
     y, keep = teacher.label(np.array([[-10.0], [-10.0]]), np.array([[-11.5], [-12.5]]))
     assert y.tolist() == [0.5, 0.0] and keep.all()
+
+
+def test_state_dict_is_plain_data_and_restores_the_same_labels():
+    import io
+
+    import torch
+
+    rewards0, rewards1 = np.random.default_rng(0).normal(size=(2, 200, 5))
+    teacher = make_teacher("stoc", seed=3, eps_mistake=0.2, eps_equal=0.1)
+    teacher.set_thresholds(40.0, 5, 50)
+    teacher.label(rewards0, rewards1)  # the generator has moved on
+    data = io.BytesIO()
+    torch.save(teacher.state_dict(), data)
+    data.seek(0)
+    restored = make_teacher("oracle", seed=99)  # another teacher entirely, until its state is loaded
+    restored.load_state_dict(torch.load(data, weights_only=True))
+    assert (restored.beta, restored.eps_mistake, restored.delta_equal) == (1.0, 0.2, teacher.delta_equal)
+    expected, got = teacher.label(rewards0, rewards1), restored.label(rewards0, rewards1)
+    np.testing.assert_array_equal(expected[0], got[0])
+    np.testing.assert_array_equal(expected[1], got[1])
