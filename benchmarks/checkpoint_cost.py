@@ -52,7 +52,7 @@ if __name__ == "__main__":
             pebble.save_file(path, data.getvalue())
             writes.append(time.perf_counter() - start)
             start = time.perf_counter()
-            torch.load(path, weights_only=False)
+            torch.load(path, weights_only=True)
             reads.append(time.perf_counter() - start)
         size = os.path.getsize(path)
     print(f"| transitions | checkpoint size (MiB) | write, best of {args.repeats} (s) | read, best of {args.repeats} (s) |")

@@ -227,3 +227,31 @@ def test_equal_arms_are_within_noise():
     # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): no verdict either way
     row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134}
     assert report.verdict(row).startswith("inconclusive: ours is lower by 176.7")
+
+
+def test_compare_logs_sets_the_diagnostics_of_both_side_by_side(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    base = {"teacher": "oracle", "ground_truth_reward": False}
+    for seed, alpha in ((1, 0.1), (2, 0.3)):  # ours: alpha 0.1 and 0.3 -> mean 0.2 in the first window
+        run = tmp_path / f"ours{seed}"
+        run.mkdir()
+        (run / "config.json").write_text(json.dumps(base))
+        writer = SummaryWriter(str(run))
+        writer.add_scalar("losses/alpha", alpha, 1000)
+        writer.add_scalar("losses/alpha", 9.0, 3000)
+        writer.close()
+    ref = tmp_path / "ref" / "bpref"
+    ref.mkdir(parents=True)
+    (ref.parent / "config.json").write_text(json.dumps(base | {"implementation": "reference"}))
+    (ref / "train.csv").write_text("step,alpha_value,actor_entropy,batch_reward,critic_loss,true_episode_reward\n"
+                                   "1000,0.05,1,2,3,4\n2000,0.07,1,2,3,4\n3000,0.5,1,2,3,4\n")
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks/reference/compare_logs.py"), str(tmp_path),
+                             "--window", "2000"], capture_output=True, text=True, env=ENV)
+    assert result.returncode == 0, result.stderr
+    rows = [line.split(" | ") for line in result.stdout.splitlines() if line.startswith("| 1-2000")
+            or line.startswith("| 2001-4000")]
+    assert "runs: {'ours': 2, 'reference': 1}" in result.stdout
+    header = next(line for line in result.stdout.splitlines() if line.startswith("| steps"))
+    assert header.split(" | ")[1:3] == ["alpha (ours)", "alpha (reference)"]
+    assert rows[0][1:3] == ["0.2", "0.06"] and rows[1][1:3] == ["9", "0.5"]

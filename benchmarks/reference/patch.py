@@ -26,6 +26,10 @@ EDITS = [
      "from torch import distributions as pyd\npyd.Distribution.set_default_validate_args(False)\n",
      "torch >= 1.8 validates distribution arguments by default and refuses tanh(u) = +-1.0 in float32; torch 1.4, "
      "which the reference was written for, did not validate: the same values"),
+    ("stable_baselines3/__init__.py",
+     'with open(version_file, "r") as file_handler:\n    __version__ = file_handler.read().strip()',
+     '__version__ = open(version_file).read().strip() if os.path.exists(version_file) else "unknown"',
+     "its vendored Stable-Baselines3 reads a version.txt that the repository does not contain (PrefPPO only)"),
     ("custom_dmc2gym/dmc2gym/wrappers.py",
      "dim = np.int(np.prod(s.shape))",
      "dim = int(np.prod(s.shape))",

@@ -20,7 +20,7 @@ git --git-dir="$( (cd "$clone" && git rev-parse --absolute-git-dir) )" archive "
 "$python" -m venv "$target/.venv"
 pip="$target/.venv/bin/pip"
 "$pip" install -q torch==2.13.0 mujoco==3.3.0 dm-control==1.0.28 numpy==2.3.5 'setuptools>=77.0.3,<81' \
-    hydra-core==0.11.3 termcolor tqdm scipy scikit-image tensorboard pyyaml cloudpickle
+    hydra-core==0.11.3 termcolor tqdm scipy scikit-image tensorboard pyyaml cloudpickle pandas matplotlib
 "$pip" install -q --no-deps gym==0.17.3                    # its dmc2gym needs the 4-value step API
 "$pip" install -q --no-deps "$target/BPref/custom_dmc2gym"  # dmc2gym is not on the package index
 echo "reference ready: $target/BPref with $target/.venv"
