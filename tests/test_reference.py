@@ -255,3 +255,23 @@ def test_compare_logs_sets_the_diagnostics_of_both_side_by_side(tmp_path):
     header = next(line for line in result.stdout.splitlines() if line.startswith("| steps"))
     assert header.split(" | ")[1:3] == ["alpha (ours)", "alpha (reference)"]
     assert rows[0][1:3] == ["0.2", "0.06"] and rows[1][1:3] == ["9", "0.5"]
+
+
+def test_reward_learning_check_splits_the_sessions_and_judges_a_perfect_reward_perfectly(tmp_path):
+    import reward_learning
+
+    rng = np.random.default_rng(0)
+    (tmp_path / "labels").mkdir()
+    for session in range(3):  # reward = first observation entry; the teacher prefers the larger return
+        obs = rng.normal(size=(2, 4, 5, 3)).astype(np.float32)
+        actions = rng.normal(size=(2, 4, 5, 1)).astype(np.float32)
+        rewards = obs[..., 0]
+        y = (rewards[1].sum(1) > rewards[0].sum(1)).astype(np.float64)
+        np.savez(tmp_path / "labels" / f"session_{session:04d}.npz", obs0=obs[0], obs1=obs[1], actions0=actions[0],
+                 actions1=actions[1], rewards0=rewards[0], rewards1=rewards[1], y=y, keep=np.ones(4, bool))
+    data = reward_learning.labelled(str(tmp_path), 2)
+    assert data["train0"].shape == (8, 5, 4) and data["later0"].shape == (4, 5, 4) and len(data["y"]) == 8
+    assert reward_learning.judged(lambda x: x[:, 0], data) == pytest.approx((1.0, 1.0))
+    assert reward_learning.judged(lambda x: -x[:, 0], data) == pytest.approx((-1.0, 0.0))
+    result = reward_learning.ours(data, seed=0)
+    assert 1 <= result["epochs"] <= 50 and -1 <= result["correlation"] <= 1
