@@ -256,6 +256,10 @@ def orthogonal_init(module: nn.Module) -> nn.Module:
     return module
 
 
+LOG_STD_MIN = -5  # the reference SAC's log std bounds
+LOG_STD_MAX = 2
+
+
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; log std bounded to [-5, 2] as in the reference SAC."""
 
@@ -265,7 +269,7 @@ class Actor(nn.Module):
 
     def forward(self, obs):
         mean, log_std = self.net(obs).chunk(2, dim=-1)
-        return mean, -5 + 0.5 * 7 * (torch.tanh(log_std) + 1)
+        return mean, LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
 
     def sample(self, obs):
         mean, log_std = self(obs)
@@ -465,7 +469,7 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
         accuracy = correct.item() / counted.item() if counted else float("nan")
         if accuracy > 0.97:
             break
-    return (loss_sum / -(-len(y) // args.reward_batch_size)).item(), accuracy
+    return (loss_sum / math.ceil(len(y) / args.reward_batch_size)).item(), accuracy
 
 
 # Plumbing: command line, files, evaluation, the loop's state

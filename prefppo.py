@@ -240,8 +240,8 @@ TRAIN_STREAM, EVAL_STREAM = 0, 1  # the streams of episode seeds of the training
 
 
 def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
-    """Independent streams from one run seed: query sampler, teacher, random actions of the seed steps (PEBBLE)."""
-    return np.random.SeedSequence(seed).spawn(3)
+    """Independent streams from one run seed: query sampler, teacher."""
+    return np.random.SeedSequence(seed).spawn(2)
 
 
 def episode_seed(run_seed: int, stream: int, episode: int) -> int:
@@ -494,7 +494,7 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
         accuracy = correct.item() / counted.item() if counted else float("nan")
         if accuracy > 0.97:
             break
-    return (loss_sum / -(-len(y) // args.reward_batch_size)).item(), accuracy
+    return (loss_sum / math.ceil(len(y) / args.reward_batch_size)).item(), accuracy
 
 
 # Plumbing: command line, files, evaluation, the loop's state
@@ -759,7 +759,7 @@ if __name__ == "__main__":
 
     # Seeding: numpy (query sampler and teacher: independent streams), torch (networks, actions, minibatches),
     # every reset (episode_seed): an env is a function of its episode's seed and actions
-    sampler_seed, teacher_seed, _ = numpy_seeds(args.seed)
+    sampler_seed, teacher_seed = numpy_seeds(args.seed)
     rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
     torch.set_flush_denormal(True)  # MuJoCo's tiny float32 velocities are denormals, ~10x slower on a CPU

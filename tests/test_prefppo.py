@@ -316,7 +316,7 @@ def test_query_pool_keeps_every_episode_by_default():
 
 
 def test_query_sampler_and_teacher_draw_independent_streams():
-    sampler_seed, teacher_seed, _ = prefppo.numpy_seeds(1)
+    sampler_seed, teacher_seed = prefppo.numpy_seeds(1)
     teacher = prefppo.make_teacher("stoc", seed=teacher_seed)
     # with one seed for both (the old behaviour) these draws were the same numbers
     assert not np.array_equal(np.random.default_rng(sampler_seed).random(8), teacher.rng.random(8))
