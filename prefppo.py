@@ -602,29 +602,26 @@ def save_file(path: str, data: bytes):
             os.remove(f"{path}.tmp")
 
 
-def plain(tree):
-    """numpy arrays as tensors and numpy scalars as Python numbers, through lists, tuples and dicts: a checkpoint
-    of plain data, which torch.load(..., weights_only=True) reads without running code from the file."""
-    if isinstance(tree, np.ndarray):
-        return torch.tensor(tree)
-    if isinstance(tree, np.generic):
-        return tree.item()
-    if isinstance(tree, (list, tuple, dict)):
-        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
-        converted = {key: plain(value) for key, value in items}
-        return converted if isinstance(tree, dict) else type(tree)(converted.values())
-    return tree
+def tree_map(fn, tree):
+    """fn applied to every leaf of nested lists, tuples and dicts."""
+    if isinstance(tree, dict):
+        return {key: tree_map(fn, value) for key, value in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(tree_map(fn, value) for value in tree)
+    return fn(tree)
 
 
-def unplain(tree):
-    """plain()'s inverse for the parts the loop keeps in numpy: tensors back to arrays."""
-    if isinstance(tree, torch.Tensor):
-        return tree.numpy()
-    if isinstance(tree, (list, tuple, dict)):
-        items = tree.items() if isinstance(tree, dict) else enumerate(tree)
-        converted = {key: unplain(value) for key, value in items}
-        return converted if isinstance(tree, dict) else type(tree)(converted.values())
-    return tree
+def plain(leaf):
+    """A checkpoint's leaf as plain data (numpy arrays as tensors, numpy scalars as Python numbers), so that
+    torch.load(..., weights_only=True) reads the checkpoint without running code from the file."""
+    if isinstance(leaf, np.ndarray):
+        return torch.tensor(leaf)
+    return leaf.item() if isinstance(leaf, np.generic) else leaf
+
+
+def unplain(leaf):
+    """plain()'s inverse for the parts the loop keeps in numpy."""
+    return leaf.numpy() if isinstance(leaf, torch.Tensor) else leaf
 
 
 EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
@@ -795,16 +792,17 @@ if __name__ == "__main__":
     learners = {"actor": actor, "critic": critic, "reward_model": reward_model, "optimizer": optimizer,
                 "reward_optimizer": reward_optimizer, "teacher": teacher}
     if checkpoint:  # --resume: every part back, key by key
-        progress = Progress(**checkpoint["progress"] | {"current": unplain(checkpoint["progress"]["current"])})
+        saved_progress = checkpoint["progress"]
+        progress = Progress(**saved_progress | {"current": tree_map(unplain, saved_progress["current"])})
         print(f"resuming from the checkpoint at step {progress.global_step}")
         for name, part in learners.items():
             part.load_state_dict(checkpoint[name])
-        vars(obs_stats).update(unplain(checkpoint["obs_stats"]))
+        vars(obs_stats).update(tree_map(unplain, checkpoint["obs_stats"]))
         knn_reward.states = checkpoint["knn_states"].to(device)
-        vars(knn_reward.stats).update(unplain(checkpoint["knn_stats"]))
+        vars(knn_reward.stats).update(tree_map(unplain, checkpoint["knn_stats"]))
         preferences = {key: value.to(device) for key, value in checkpoint["preferences"].items()}
         rng.bit_generator.state = checkpoint["rng"]
-        episodes.extend(unplain(checkpoint["episodes"]))
+        episodes.extend(tree_map(unplain, checkpoint["episodes"]))
         torch.set_rng_state(checkpoint["torch_rng"])
         if device.type == "cuda" and checkpoint["cuda_rng"] is not None:
             torch.cuda.set_rng_state_all(checkpoint["cuda_rng"])
@@ -836,10 +834,11 @@ if __name__ == "__main__":
     def checkpoint_state() -> dict:
         """Everything the run needs to go on exactly after this rollout, but the envs (each reset with its episode's
         seed, then the episode's actions replayed) and gSDE's matrices (each rollout draws new ones)."""
-        return {"progress": plain(asdict(progress) | {"wall_time": time.time() - start_time}),
-                **{name: part.state_dict() for name, part in learners.items()}, "obs_stats": plain(vars(obs_stats)),
-                "knn_states": knn_reward.states.cpu(), "knn_stats": plain(vars(knn_reward.stats)),
-                "preferences": preferences, "rng": rng.bit_generator.state, "episodes": plain(list(episodes)),
+        return {"progress": tree_map(plain, asdict(progress) | {"wall_time": time.time() - start_time}),
+                **{name: part.state_dict() for name, part in learners.items()},
+                "obs_stats": tree_map(plain, vars(obs_stats)),
+                "knn_states": knn_reward.states.cpu(), "knn_stats": tree_map(plain, vars(knn_reward.stats)),
+                "preferences": preferences, "rng": rng.bit_generator.state, "episodes": tree_map(plain, list(episodes)),
                 "torch_rng": torch.get_rng_state(),
                 "cuda_rng": torch.cuda.get_rng_state_all() if device.type == "cuda" else None}
 
