@@ -37,7 +37,7 @@ GROUND_TRUTH = "ground-truth"
 TEACHER_OVERRIDES = ("teacher_beta", "teacher_gamma", "teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal")
 # Config fields that may differ between the seeds of one setting
 PER_RUN_FIELDS = {"seed", "output_dir", "resume", "checkpoint_every", "cuda", "track", "wandb_project_name",
-                  "capture_video", "exp_name", "labels_from"}
+                  "capture_video", "exp_name", "labels_from", "reference_command", "started_by_hand"}
 
 
 @dataclass
@@ -533,7 +533,9 @@ def parity_markdown(rows: list[dict], figures: list[Path], target: Path, command
              f"bootstrap CI (rliable, {reps} replications); difference = mean final return of ours - the reference's, "
              "95% percentile bootstrap CI with seeds resampled within each arm (with 3-5 seeds a side such intervals "
              "are narrower than they should be: Welch's p is given beside it). Wall time: minutes per run as "
-             "recorded at its last evaluation, both one thread per run, two runs at a time on the same machine.", ""]
+             "recorded at its last evaluation, both one thread per run, two runs at a time on the same machine. The rerun "
+             "and what was checked where the two part: [benchmarks/reference](../benchmarks/reference/README.md), "
+             "[results.md](results.md#parity-with-the-reference-code).", ""]
     for row, figure in zip(rows, figures):
         lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
                   f"{row['sampler']}, {row['schedule']}", "", f"**Verdict: {verdict(row)}.**", ""]
