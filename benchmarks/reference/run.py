@@ -34,11 +34,9 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pebble import DMC_PRESET, PRESETS  # noqa: E402
+from pebble import DMC_PRESET, PRESETS, eval_csv, save_file  # noqa: E402
 from sim_teacher import make_teacher  # noqa: E402
 
-EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback", "reward_correlation",
-                "wall_time", "overhead_seconds")  # pebble.py's eval.csv
 FEED_TYPES = {"uniform": 0, "disagreement": 1, "entropy": 2, "coverage": 3, "disagreement-coverage": 4,
               "entropy-coverage": 5}  # the reference's feed_type
 REWARD_SCHEDULES = {"uniform": (0, 1.0), "decay": (1, 2.0), "increase": (2, 0.5)}
@@ -158,9 +156,8 @@ def converted_rows(bpref_dir: Path, wall_times: list[float]) -> list[dict]:
 
 
 def write_eval(out: Path, rows: list[dict]):
-    text = ",".join(EVAL_COLUMNS) + "\n" + "".join(",".join(str(row[c]) for c in EVAL_COLUMNS) + "\n" for row in rows)
-    (out / "eval.csv.tmp").write_text(text)
-    os.replace(out / "eval.csv.tmp", out / "eval.csv")
+    """eval.csv as pebble.py writes it (its columns, written whole and atomically)."""
+    save_file(str(out / "eval.csv"), eval_csv(rows))
 
 
 def final_model(bpref_dir: Path, step: int) -> dict:
