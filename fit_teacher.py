@@ -1,0 +1,493 @@
+# Which simulated teacher of B-Pref (sim_teacher.py) most likely gave these labels; see
+# docs/teacher_fit.md
+"""Maximum-likelihood fit of SimTeacher(beta, gamma, eps_mistake, eps_skip, eps_equal) to labels.
+
+    python fit_teacher.py --labels runs/<run>            # a run directory, its labels/ or one .npz
+    python fit_teacher.py --labels runs/check --simulate  # simulated labels written there, fitted
+
+The likelihood of Algorithm 1 is a product of three factors, each fitted on its own:
+  - skip: a pair is skipped iff max(R0, R1) < delta_skip (undiscounted returns);
+  - equal (kept pairs): y = 0.5 iff |R1 - R0| < delta_equal;
+  - choice (strict pairs, y = 0 or 1): P(y = 1) = eps + (1 - 2 eps) sigmoid(beta (A1 - A0)),
+    with the myopic returns A = sum_t gamma^(H-t) r_t and eps = eps_mistake.
+Each session's thresholds are delta = eps * scale, scale = (H / T) * R_avg, which its label file
+saves as threshold_scale; older runs' files lack it, and then one delta per threshold is fitted in
+return units and the eps cannot be given.
+
+Intervals are profile-likelihood intervals, not a bootstrap: a bootstrap is unreliable at the
+boundaries this problem lives on (beta = inf, eps = 0, gamma = 1) and for a threshold, whose
+estimate is an order statistic. Identifiability: beta and eps_mistake trade off (both make labels
+disagree with the returns); only pairs whose returns differ a lot separate them, where a stochastic
+teacher is sure and only a mistake flips the label. gamma matters only where rewards vary along the
+segments. beta is per unit of return: it carries over to the same task only (gamma, eps: any task).
+"""
+
+import glob
+import json
+import math
+import os
+import sys
+import zipfile
+from dataclasses import dataclass
+
+import numpy as np
+import tyro
+from scipy.optimize import minimize
+from scipy.special import log_expit
+from scipy.stats import chi2
+
+from sim_teacher import SimTeacher
+
+MIN_STRICT = 20  # strict labels (0 or 1) below which beta, gamma and eps_mistake are not estimable
+GAMMAS = np.concatenate([1 - np.geomspace(0.99, 1e-4, 63), [1.0]])  # increasing, fine near 1
+DENSE_GAMMAS = np.concatenate([1 - np.geomspace(0.99, 1e-4, 2000), [1.0]])  # the rational teacher's
+EPSILONS = np.concatenate([[0.0], np.geomspace(1e-3, 0.05, 16, endpoint=False),
+                           np.linspace(0.05, 0.5, 46)])
+N_BETAS = 64  # grid of beta: 0, N_BETAS values log-spaced over the relevant range, inf
+BISECTIONS = 8  # steps locating an end of an interval between two grid values
+TEACHER = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher, --teacher-*
+
+
+@dataclass
+class Args:
+    labels: str
+    """a run directory, its labels/ directory, or one session_*.npz (pebble.py, prefppo.py)"""
+    level: float = 0.95
+    """confidence level of the profile-likelihood intervals"""
+    simulate: bool = False
+    """if toggled, first write a simulated run to --labels (the --teacher-* below label it)"""
+    pairs: int = 1000
+    """--simulate: the number of labelled pairs"""
+    sessions: int = 10
+    """--simulate: the number of feedback sessions (each its own R_avg, so its own thresholds)"""
+    seed: int = 0
+    """--simulate: seed of the segments and of the teacher"""
+    teacher_beta: float = 1.0
+    """--simulate: the teacher's rationality beta (inf = rational)"""
+    teacher_gamma: float = 0.95
+    """--simulate: the teacher's myopic discount gamma in (0, 1]"""
+    teacher_eps_mistake: float = 0.1
+    """--simulate: the teacher's mistake probability"""
+    teacher_eps_skip: float = 0.1
+    """--simulate: the teacher's adaptive skip fraction"""
+    teacher_eps_equal: float = 0.05
+    """--simulate: the teacher's adaptive equal fraction"""
+
+
+# -------------------------------------------------------------------------------------------------
+# Label files
+# -------------------------------------------------------------------------------------------------
+
+
+def load_labels(path: str) -> dict:
+    """Every session's rewards0, rewards1 (N, H), y, keep (N,) and threshold_scale (N,: each pair's
+    session scale; None when a file lacks it). ValueError for missing or malformed files."""
+    files = [path] if os.path.isfile(path) else sorted(
+        glob.glob(os.path.join(path, "labels", "session_*.npz"))
+        or glob.glob(os.path.join(path, "session_*.npz")))
+    if not files:
+        raise ValueError(f"{path!r}: no label files (session_*.npz in it or in its labels/)")
+    sessions = []
+    for file in files:
+        if not zipfile.is_zipfile(file):
+            raise ValueError(f"{file}: not an .npz file")
+        try:
+            with np.load(file) as data:
+                session = {key: data[key] for key in data.files if key in (
+                    "rewards0", "rewards1", "y", "keep", "threshold_scale")}
+        except (OSError, EOFError, ValueError, zipfile.BadZipFile) as error:
+            raise ValueError(f"{file}: not a readable .npz ({error})") from None
+        missing = [key for key in ("rewards0", "rewards1", "y", "keep") if key not in session]
+        if missing:
+            raise ValueError(f"{file}: no {', '.join(missing)} in it")
+        shapes = [session[key].shape for key in ("rewards0", "rewards1", "y", "keep")]
+        if not (len(shapes[0]) == 2 and shapes[0] == shapes[1]
+                and shapes[2] == shapes[3] == shapes[0][:1]):
+            raise ValueError(f"{file}: rewards0, rewards1 must be (N, H) and y, keep (N,); got "
+                             f"shapes {', '.join(map(str, shapes))}")
+        scale = session.get("threshold_scale")
+        if scale is not None and scale.size != 1:
+            raise ValueError(f"{file}: threshold_scale must be one number, got shape {scale.shape}")
+        if scale is not None:
+            session["threshold_scale"] = np.full(len(session["y"]), float(scale))
+        sessions.append(session)
+    lengths = sorted({s["rewards0"].shape[1] for s in sessions})
+    if len(lengths) > 1:
+        raise ValueError(f"{path!r}: sessions of different segment lengths {lengths}")
+    data = {key: np.concatenate([s[key] for s in sessions])
+            for key in ("rewards0", "rewards1", "y", "keep")}
+    scales = [s.get("threshold_scale") for s in sessions]
+    data["threshold_scale"] = None if any(s is None for s in scales) else np.concatenate(scales)
+    return data
+
+
+def simulate(directory: str, teacher: SimTeacher, pairs: int = 1000, sessions: int = 10,
+             segment_len: int = 50, episode_len: int = 1000, seed: int = 0) -> None:
+    """A simulated run in `directory`: config.json naming the teacher, and labels/session_*.npz of
+    synthetic pairs that `teacher` labels. Per-step rewards lie in [0, 1] like DMC's; each pair has
+    its own scale (log-uniform over 1.5 decades: near-ties and clear pairs both occur), each segment
+    a level and a linear trend (so the myopic discount matters), and the levels rise from session to
+    session as a learning policy's. R_avg = the session's mean segment return * T / H."""
+    rng = np.random.default_rng([seed, 23])  # a stream apart from a teacher's own default_rng(seed)
+    os.makedirs(os.path.join(directory, "labels"), exist_ok=True)
+    config = {"teacher": "oracle", "simulated": True, "segment_len": segment_len}
+    with open(os.path.join(directory, "config.json"), "w") as f:
+        config |= {f"teacher_{name}": getattr(teacher, name) for name in TEACHER}
+        json.dump(config, f, indent=2)
+    t = np.linspace(-0.5, 0.5, segment_len)
+    for session, n in enumerate(np.diff(np.linspace(0, pairs, sessions + 1).round().astype(int))):
+        progress = 0.4 + 0.6 * session / max(sessions - 1, 1)
+        scale = progress * np.exp(rng.uniform(math.log(0.03), 0, (n, 1, 1)))
+        level, trend = rng.uniform(0, 1, (n, 2, 1)), rng.uniform(-1.5, 1.5, (n, 2, 1))
+        noise = 0.1 * rng.standard_normal((n, 2, segment_len))
+        rewards = (scale * np.clip(level + trend * t + noise, 0, 1)).astype(np.float32)  # as saved
+        mean_return = float(rewards.sum(2).mean()) * episode_len / segment_len
+        teacher.set_thresholds(mean_return, segment_len, episode_len)
+        y, keep = teacher.label(rewards[:, 0], rewards[:, 1])
+        np.savez(os.path.join(directory, "labels", f"session_{session:04d}.npz"), step=session, y=y,
+                 keep=keep, rewards0=rewards[:, 0], rewards1=rewards[:, 1],
+                 threshold_scale=segment_len / episode_len * mean_return)
+
+
+# -------------------------------------------------------------------------------------------------
+# The choice: beta, gamma, eps_mistake
+# -------------------------------------------------------------------------------------------------
+
+
+def advantages(diff: np.ndarray, gammas: np.ndarray) -> np.ndarray:
+    """Myopic A1 - A0 for each gamma, (G, N), from the per-step differences r1 - r0 (N, H)."""
+    weights = gammas[:, None] ** np.arange(diff.shape[1] - 1, -1, -1)[None]  # the last weighs 1
+    return weights @ diff.T
+
+
+def rational_loglik(wrong, ties, n: int, eps=None):
+    """log P(labels) of a rational teacher (beta = inf): the better segment, flipped with
+    probability eps (an exact tie is a coin), from the counts of labels against the returns and of
+    exact ties. eps None: the maximum over eps (eps = wrong / decided). Arrays give arrays."""
+    decided = n - ties
+    if eps is None:
+        eps = wrong / np.maximum(decided, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # 0 log 0 = 0
+        return (np.where(wrong > 0, wrong * np.log(eps), 0.0) + ties * math.log(0.5)
+                + np.where(decided > wrong, (decided - wrong) * np.log1p(-eps), 0.0))
+
+
+def choice_loglik(beta: float, gamma: float, eps: float, diff: np.ndarray, sign: np.ndarray,
+                  gradient: bool = False):
+    """log P(labels) of the strict pairs (sign = +1 where the second segment was preferred, else
+    -1); gradient (finite beta): also its derivatives in (log beta, gamma, eps)."""
+    agree = sign * advantages(diff, np.array([gamma]))[0]
+    if math.isinf(beta):
+        return float(rational_loglik((agree < 0).sum(), (agree == 0).sum(), len(agree), eps))
+    z = beta * agree
+    log_q = log_expit(z)  # log P(label | no mistake)
+    with np.errstate(divide="ignore"):  # eps = 0 or 0.5
+        log_p = np.logaddexp(np.log(eps), np.log1p(-2 * eps) + log_q)  # a mistake, or none
+    if not gradient:
+        return float(log_p.sum())
+    with np.errstate(divide="ignore"):  # d log p / dz = (1 - 2 eps) q (1 - q) / p, finite as q -> 0
+        dz = np.exp(np.log1p(-2 * eps) + log_q - log_p + log_expit(-z))
+    powers = np.arange(diff.shape[1] - 1, -1, -1)
+    dgamma = diff @ (powers * gamma ** np.maximum(powers - 1, 0))  # d A / d gamma
+    grad = [(dz * z).sum(), (dz * beta * sign * dgamma).sum(),
+            ((1 - 2 * np.exp(log_q)) * np.exp(-np.maximum(log_p, -700))).sum()]
+    return float(log_p.sum()), np.array(grad)
+
+
+def choice_grid(diff: np.ndarray, sign: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """log-likelihood on the grid betas x GAMMAS x EPSILONS (betas may hold inf)."""
+    loglik = np.empty((len(betas), len(GAMMAS), len(EPSILONS)))
+    finite = np.isfinite(betas)
+    for g, agree in enumerate(sign * advantages(diff, GAMMAS)):
+        log_q = np.empty((len(betas), len(agree)))  # log P(label | no mistake)
+        log_q[finite] = log_expit(betas[finite, None] * agree[None])
+        with np.errstate(divide="ignore"):  # beta = inf: log 0 for a label against the returns
+            log_q[~finite] = np.log(0.5 * (1 + np.sign(agree)))
+        q = np.exp(log_q)
+        loglik[:, g, 0] = log_q.sum(1)
+        for e, eps in enumerate(EPSILONS[1:], 1):
+            loglik[:, g, e] = np.log(eps + (1 - 2 * eps) * q).sum(1)
+    return loglik
+
+
+def fit_choice(diff: np.ndarray, sign: np.ndarray, level: float) -> dict:
+    """MLE of beta, gamma, eps_mistake from the strict pairs, with profile-likelihood intervals.
+
+    theta = (log beta, gamma, eps). A grid finds the global maximum and a local optimiser polishes
+    it (TNC with the exact gradient; L-BFGS-B calls LAPACK, whose threads crawl on a busy machine).
+    The rational teacher (beta = inf) is solved exactly on a dense grid of gamma and wins ties:
+    labels that never contradict the returns give beta = inf and eps = 0. An interval holds the
+    values whose profile log-likelihood (the maximum over the other two parameters, found the same
+    way) is within chi2_1(level) / 2 of the maximum; each end is walked outward from the last grid
+    value known to be inside (the grid's maximum is a lower bound of the profile), then bisected."""
+    n = len(sign)
+    dense = sign * advantages(diff, DENSE_GAMMAS)
+    wrong, ties = (dense < 0).sum(1), (dense == 0).sum(1)
+    magnitude = np.median(np.abs(advantages(diff, GAMMAS[[0, -1]])), axis=1)  # of A, at both ends
+    magnitude = np.maximum(magnitude, 1e-12 * max(magnitude.max(), 1e-12))
+    betas = np.concatenate([[0.0], np.geomspace(1e-2 / magnitude.max(), 1e3 / magnitude.min(),
+                                                N_BETAS), [math.inf]])
+    grid = choice_grid(diff, sign, betas)
+    with np.errstate(divide="ignore"):
+        axes = [np.log(betas), GAMMAS, EPSILONS]
+    bounds = [(axes[0][1] - 2, axes[0][-2] + 2), (GAMMAS[0], 1.0), (0.0, 0.5)]
+
+    def maximise(fixed: int | None, value: float, starts: list) -> tuple[float, list]:
+        """The largest log-likelihood, and its theta, with theta[fixed] = value (None: all free)."""
+        best = (-math.inf, None)
+        if fixed != 0 or value < math.inf:  # finite beta: the optimiser over the free parameters
+            free = [i for i in range(3) if i != fixed]
+            for start in starts:
+                theta = list(start)
+                if fixed is not None:
+                    theta[fixed] = value
+
+                def full(x):  # theta with the free parameters set to x
+                    return [float(x[free.index(i)]) if i in free else theta[i] for i in range(3)]
+
+                def objective(x):
+                    t = full(x)
+                    loglik, grad = choice_loglik(math.exp(t[0]), t[1], t[2], diff, sign, True)
+                    return -loglik, -grad[free]
+                result = minimize(objective, [min(max(theta[i], bounds[i][0]), bounds[i][1])
+                                              for i in free],
+                                  jac=True, method="TNC", bounds=[bounds[i] for i in free])
+                if -result.fun > best[0]:
+                    best = (-float(result.fun), full(result.x))
+        if fixed is None or (fixed == 0 and value == math.inf):  # beta = inf, gamma and eps free
+            loglik = rational_loglik(wrong, ties, n)
+            tied = np.flatnonzero(loglik >= loglik.max() - 1e-9)  # an interval, when deterministic
+            i = tied[-1] if DENSE_GAMMAS[tied[-1]] == 1.0 else tied[len(tied) // 2]  # 1, or middle
+            eps = wrong[i] / max(n - ties[i], 1)
+            rational = (float(loglik[i]), [math.inf, float(DENSE_GAMMAS[i]), eps])
+        elif fixed == 1:  # beta = inf at this gamma
+            agree = sign * advantages(diff, np.array([value]))[0]
+            w, t = (agree < 0).sum(), (agree == 0).sum()
+            rational = (float(rational_loglik(w, t, n)), [math.inf, value, w / max(n - t, 1)])
+        elif fixed == 2:  # beta = inf at this eps
+            loglik = rational_loglik(wrong, ties, n, value)
+            i = loglik.argmax()
+            rational = (float(loglik[i]), [math.inf, float(DENSE_GAMMAS[i]), value])
+        else:
+            rational = (-math.inf, None)
+        return rational if rational[0] >= best[0] - 1e-9 else best  # ties: the simpler, rational
+
+    def grid_start(p: int, value: float) -> list:
+        """The grid's best theta on the grid plane nearest to theta[p] = value."""
+        finite = np.flatnonzero(np.isfinite(axes[p]))
+        j = finite[np.argmin(np.abs(axes[p][finite] - value))] if math.isfinite(value) else (
+            np.argmax(axes[p]) if value > 0 else np.argmin(axes[p]))
+        plane = np.take(grid, j, axis=p)
+        index = list(np.unravel_index(np.argmax(plane), plane.shape))
+        index.insert(p, j)
+        return [float(axes[i][index[i]]) for i in range(3)]
+
+    top = np.unravel_index(np.argmax(grid[:-1]), grid[:-1].shape)  # the grid's best finite beta
+    loglik, mle = maximise(None, 0.0, [[float(axes[i][top[i]]) for i in range(3)]])
+    cut = loglik - chi2.ppf(level, 1) / 2
+
+    def inside(p: int, value: float) -> bool:
+        return maximise(p, value, [grid_start(p, value), mle])[0] >= cut
+
+    ci = {}
+    for p, name in enumerate(("beta", "gamma", "eps_mistake")):
+        lower = grid.max(axis=tuple(i for i in range(3) if i != p))  # <= the profile at each value
+        ends = []
+        for direction in (-1, 1):
+            beyond = list(np.flatnonzero(axes[p] > mle[p] if direction > 0 else axes[p] < mle[p]))
+            beyond = beyond[::direction]  # outward from the estimate
+            known = [i for i in beyond if lower[i] >= cut]
+            last = axes[p][known[-1]] if known else mle[p]
+            for value in axes[p][beyond[beyond.index(known[-1]) + 1:] if known else beyond]:
+                if inside(p, value):
+                    last = value
+                    continue
+                if math.isfinite(value) and math.isfinite(last):
+                    within, outside = last, value
+                    for _ in range(BISECTIONS):
+                        middle = (within + outside) / 2
+                        if inside(p, middle):
+                            within = middle
+                        else:
+                            outside = middle
+                    last = within
+                break
+            ends.append(float(last))
+        ci[name] = tuple(ends)
+    ci["beta"] = tuple(math.exp(v) for v in ci["beta"])
+    return {"loglik": loglik, "beta": math.exp(mle[0]), "gamma": mle[1], "eps_mistake": mle[2],
+            "ci": ci}
+
+
+# -------------------------------------------------------------------------------------------------
+# The thresholds: eps_skip, eps_equal (or delta_skip, delta_equal in return units)
+# -------------------------------------------------------------------------------------------------
+
+
+def fit_threshold(values: np.ndarray, scales: np.ndarray, hits: np.ndarray, upper: float,
+                  level: float) -> dict:
+    """A deterministic threshold rule: a hit (skip, equal) iff value < t * scale, t in [0, upper];
+    t = 0 is the rule switched off (SimTeacher with eps_skip = 0 never skips).
+
+    Its likelihood is a step function: 1 on the interval of thresholds that reproduce every
+    decision, 0 elsewhere. That interval is the set of MLEs, and an exact confidence set too (the
+    true threshold lies in it with probability 1). A person is no threshold, so the rule gets a
+    lapse rate lambda <= 1/2 (a decision goes the other way with probability lambda): with lambda at
+    its MLE, k disagreements of n have the log-likelihood k log(k/n) + (n - k) log(1 - k/n), largest
+    at the fewest disagreements, and the interval is the thresholds within chi2_1(level) / 2 of the
+    best (with no disagreement, the interval above: one disagreement costs log n + 1 > 1.92). The
+    estimate is 0 when the rule switched off is among the best (the simplest teacher: no hit was
+    seen), else the middle of the best thresholds (the posterior mean for a flat prior on them)."""
+    n = len(values)
+    breaks = np.unique(values[scales != 0] / scales[scales != 0])  # where a pair's prediction flips
+    edges = np.concatenate([[0.0], breaks[(breaks > 0) & (breaks < upper)], [upper]])
+    spans = np.concatenate([[[0.0, 0.0]], np.stack([edges[:-1], edges[1:]], 1)])  # 0, pieces
+    errors = np.array([hits.sum()] + [(hits != (values < t * scales)).sum()
+                                      for t in spans[1:].mean(1)])
+    lapse = np.minimum(errors / n, 0.5)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        loglik = np.where(errors > 0, errors * np.log(lapse), 0) + (n - errors) * np.log1p(-lapse)
+    best = errors == errors.min()
+    within = loglik >= loglik[best][0] - chi2.ppf(level, 1) / 2
+    estimate = 0.0 if best[0] else float(spans[best, 0].min() + spans[best, 1].max()) / 2
+    return {"estimate": estimate, "disagreements": int(errors.min()),
+            "ci": (float(spans[within, 0].min()), float(spans[within, 1].max()))}
+
+
+# -------------------------------------------------------------------------------------------------
+# The fit
+# -------------------------------------------------------------------------------------------------
+
+
+def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) -> dict:
+    """The SimTeacher that most likely gave the labels. rewards0, rewards1 (N, H): both segments'
+    true per-step rewards; y (N,): 0, 1, 0.5 (equal), NaN where skipped; keep (N,): False where
+    skipped; threshold_scale: None, a number or (N,): each pair's session (H / T) * R_avg.
+
+    Returns the SimTeacher fields beta, gamma, eps_mistake, eps_skip, eps_equal (an eps is None
+    where the scale is missing and the teacher skipped / said equal: then delta_skip, delta_equal
+    hold the thresholds in return units), ci (name -> (low, high) at `level`), the counts, loglik
+    (of the choice) and the threshold rules' disagreements (pairs no single threshold explains)."""
+    rewards0, rewards1 = np.asarray(rewards0, np.float64), np.asarray(rewards1, np.float64)
+    y, keep = np.asarray(y, np.float64), np.asarray(keep)
+    if rewards0.ndim != 2 or rewards0.shape != rewards1.shape:
+        raise ValueError(f"rewards0 and rewards1 must be (N, H) arrays of one shape, got "
+                         f"{rewards0.shape} and {rewards1.shape}")
+    n = len(rewards0)
+    if y.shape != (n,) or keep.shape != (n,):
+        raise ValueError(f"y and keep must have shape ({n},), got {y.shape} and {keep.shape}")
+    if keep.dtype != bool and not np.isin(keep, [0, 1]).all():
+        raise ValueError("keep must hold booleans")
+    keep = keep.astype(bool)
+    if not (np.isfinite(rewards0).all() and np.isfinite(rewards1).all()):
+        raise ValueError("rewards must be finite")
+    if not np.isin(y[keep], [0.0, 0.5, 1.0]).all():
+        raise ValueError("y must be 0, 0.5 or 1 where keep is True")
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    strict = keep & (y != 0.5)
+    if strict.sum() < MIN_STRICT:
+        raise ValueError(f"{strict.sum()} strict labels (0 or 1): the fit needs {MIN_STRICT}")
+    if threshold_scale is not None:
+        threshold_scale = np.broadcast_to(np.asarray(threshold_scale, np.float64), (n,))
+        if not np.isfinite(threshold_scale).all():
+            raise ValueError("threshold_scale must be finite")
+
+    result = fit_choice((rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0), level)
+    # The thresholds in eps units (each session's delta = eps * its scale) when every session has
+    # its scale (eps <= 1, as SimTeacher's), else one delta for all sessions in return units.
+    returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
+    scaled = threshold_scale is not None
+    scales = threshold_scale if scaled else np.ones(n)
+    upper = 1.0 if scaled else 2 * float(np.abs(np.concatenate([returns0, returns1])).max()) + 1
+    parts = {"skip": fit_threshold(np.maximum(returns0, returns1), scales, ~keep, upper, level),
+             "equal": fit_threshold(np.abs(returns1 - returns0)[keep], np.abs(scales[keep]),
+                                    y[keep] == 0.5, upper, level)}
+    for name, part in parts.items():
+        known = scaled or part["estimate"] == 0  # a rule switched off is eps = 0 at any scale
+        result[f"eps_{name}"] = part["estimate"] if known else None
+        result[f"delta_{name}"] = None if scaled else part["estimate"]
+        result["ci"][f"eps_{name}" if scaled else f"delta_{name}"] = part["ci"]
+        result[f"{name}_disagreements"] = part["disagreements"]
+    return result | {"n_pairs": n, "n_strict": int(strict.sum()), "n_skipped": int((~keep).sum()),
+                     "n_equal": int((keep & (y == 0.5)).sum()), "level": level}
+
+
+def teacher_overrides(result: dict) -> dict:
+    """The fit's make_teacher("oracle", **overrides) fields, rounded as --teacher-* prints them."""
+    return {name: float(f"{result[name]:.4g}") for name in TEACHER if result[name] is not None}
+
+
+def teacher_flags(result: dict) -> str:
+    """The pebble.py / prefppo.py flags of the fitted teacher."""
+    return " ".join(["--teacher oracle"] + [f"--teacher-{name.replace('_', '-')} {value:.4g}"
+                                            for name, value in teacher_overrides(result).items()])
+
+
+def report(result: dict, truth: dict | None = None) -> str:
+    """The table (parameter, estimate, interval, and the run's teacher when known) and the flags."""
+    def number(value):
+        return "-" if value is None else f"{value:.4g}"
+
+    names = ["beta", "gamma", "eps_mistake"] + [
+        f"eps_{k}" if f"eps_{k}" in result["ci"] else f"delta_{k}" for k in ("skip", "equal")]
+    rows = [("parameter", "estimate", f"{100 * result['level']:g}% CI (profile likelihood)")
+            + (("run's teacher",) if truth else ())]
+    for name in names:
+        low, high = result["ci"][name]
+        rows.append((name, number(result[name]), f"[{number(low)}, {number(high)}]")
+                    + ((number(truth.get(name)),) if truth else ()))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    lines = [f"{result['n_pairs']} pairs: {result['n_strict']} strict, {result['n_equal']} equal, "
+             f"{result['n_skipped']} skipped"]
+    lines += ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip()
+              for row in rows]
+    for name in ("skip", "equal"):
+        if result[f"{name}_disagreements"]:
+            lines.append(f"note: no {name} threshold explains every decision: "
+                         f"{result[f'{name}_disagreements']} go the other way (a lapse rate fits)")
+    missing = [name for name in ("skip", "equal") if result[f"eps_{name}"] is None]
+    if missing:
+        lines.append("note: the label files lack threshold_scale: delta_"
+                     + " and delta_".join(missing) + " are in return units, and --teacher-eps-"
+                     + " and --teacher-eps-".join(missing) + " cannot be given")
+    lines += ["", "simulate this teacher with pebble.py or prefppo.py (on the same task: beta is "
+              "per unit of return):", f"  {teacher_flags(result)}"]
+    return "\n".join(lines)
+
+
+def run_teacher(directory: str) -> dict | None:
+    """The simulated teacher of the run in `directory` (its config.json), None if none is known."""
+    try:
+        with open(os.path.join(directory, "config.json")) as f:
+            saved = json.load(f)
+    except (OSError, ValueError):
+        return None
+    truth = {name: saved.get(f"teacher_{name}") for name in TEACHER}
+    if saved.get("teacher") == "human" or not all(isinstance(v, (int, float))
+                                                   for v in truth.values()):
+        return None
+    return truth | {f"delta_{k}": 0.0 for k in ("skip", "equal") if truth[f"eps_{k}"] == 0}
+
+
+def main():
+    args = tyro.cli(Args)
+    try:
+        if args.simulate:
+            teacher = SimTeacher(args.teacher_beta, args.teacher_gamma, args.teacher_eps_mistake,
+                                 args.teacher_eps_skip, args.teacher_eps_equal, seed=args.seed)
+            simulate(args.labels, teacher, args.pairs, args.sessions, seed=args.seed)
+        data = load_labels(args.labels)
+        try:
+            result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"],
+                         data["threshold_scale"], args.level)
+        except ValueError as error:
+            raise ValueError(f"{args.labels!r}: {error}") from None
+    except (ValueError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)
+    print(report(result, run_teacher(args.labels)))
+
+
+if __name__ == "__main__":
+    main()
