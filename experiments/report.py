@@ -385,9 +385,10 @@ def reward_alignment(run: Run) -> tuple[np.ndarray, np.ndarray]:
         learned_rewards.append(rewards.mean().item())
         return rewards
 
-    networks = (actor, recorded_reward_model) if obs_stats is None else (actor, obs_stats, recorded_reward_model)
+    policy = module.mean_policy(actor, "cpu") if obs_stats is None else module.mean_policy(actor, obs_stats, "cpu")
     with torch.no_grad():
-        module.evaluate(*networks, RecordTrueReward(env), final_evaluation_seeds(module, run)[:1], "cpu")
+        module.evaluate(policy, recorded_reward_model, RecordTrueReward(env), final_evaluation_seeds(module, run)[:1],
+                        "cpu")
     env.close()
     return np.array(true_rewards), np.array(learned_rewards)
 

@@ -242,13 +242,13 @@ def test_reward_alignment_rebuilds_the_final_model_as_the_run_evaluated_it(local
     torch.set_num_threads(1)  # as the run had
     run = next(r for r in report.find_runs(local_grid[0], local_grid[0] / "report") if r.path.name == name)
     module, env, actor, reward_model, obs_stats = report.load_final_model(run)
-    networks = (actor, reward_model) if module is pebble else (actor, obs_stats, reward_model)
+    policy = module.mean_policy(actor, "cpu") if module is pebble else module.mean_policy(actor, obs_stats, "cpu")
     seeds = report.final_evaluation_seeds(module, run)
-    replayed = module.evaluate(*networks, env, seeds, "cpu")
+    replayed = module.evaluate(policy, reward_model, env, seeds, "cpu")
     final = grid.read_eval(run.path)[-1]
     assert replayed["episode_return"] == pytest.approx(final["episode_return"], rel=1e-6)
     assert replayed["reward_correlation"] == pytest.approx(final["reward_correlation"], rel=1e-5)
-    first = module.evaluate(*networks, env, seeds[:1], "cpu")
+    first = module.evaluate(policy, reward_model, env, seeds[:1], "cpu")
     true_rewards, learned_rewards = report.reward_alignment(run)
     assert true_rewards.sum() == pytest.approx(first["episode_return"], rel=1e-9)
     correlation = np.corrcoef(true_rewards, learned_rewards)[0, 1]

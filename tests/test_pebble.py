@@ -85,7 +85,7 @@ def test_sac_update_steps_each_network_on_its_own_loss_only():
                          torch.zeros(8, 1))
     critic_before = [p.clone() for p in critic.parameters()]
     actions, log_prob = actor.sample(batch.obs)
-    pebble.optimize(actor_opt, pebble.sac_actor_loss(log_prob, *critic(batch.obs, actions), 0.1), "actor loss")
+    pebble.optimize(actor_opt, pebble.sac_actor_loss(log_prob, *critic(batch.obs, actions), 0.1))
     assert all(p.grad is None for p in critic.parameters())  # no critic gradient was computed
     assert all(torch.equal(p, q) for p, q in zip(critic.parameters(), critic_before))
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
@@ -464,7 +464,7 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
     first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
     assert first.returncode == second.returncode == 0
     assert "\ndevice: cpu (--no-cuda)\n" in first.stdout
-    assert "on this CPU (projected)" not in first.stdout  # small networks: no projection line
+    assert "train for days on a CPU" not in first.stdout  # small networks: no note
     assert "\n  sampler: entropy\n  schedule: uniform\n" in first.stdout  # the configuration, one key per line
     assert "note: only 20 of the 30 labels of --max-feedback fit in 800 steps" in first.stdout  # sessions at 401, 701
     assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
@@ -522,7 +522,7 @@ def test_help_lists_the_choices():
     assert "--cuda, --no-cuda" in result.stdout
 
 
-def test_paper_sizes_on_a_cpu_print_the_projected_time_first(tmp_path):
+def test_paper_sizes_on_a_cpu_print_a_note_first(tmp_path):
     process = start_script("pebble.py", tmp_path / "run", "--env-id", "walker-walk", "--no-cuda")
     watchdog = threading.Timer(300, process.kill)  # the run itself would take days: stopped after the line
     watchdog.start()
@@ -530,14 +530,13 @@ def test_paper_sizes_on_a_cpu_print_the_projected_time_first(tmp_path):
         lines = []
         for line in process.stdout:
             lines.append(line)
-            if line.startswith("note: this run needs about"):
+            if line.startswith("note: networks of this size"):
                 break
     finally:
         process.send_signal(signal.SIGKILL)
         process.communicate()
         watchdog.cancel()
     note = lines[-1]
-    assert " h on this CPU (projected); use a GPU, or the CPU scale of docs/results.md: python pebble.py --env-id " \
-        "walker-walk --total-timesteps 100000 --hidden-dim 256" in note
-    hours = float(note.split("needs about ")[1].split(" h ")[0])
-    assert hours >= 1  # 500K updates of 1024 x 2 networks, batch 1024: never under an hour on a CPU
+    assert note.startswith("note: networks of this size train for days on a CPU; use a GPU, or the CPU scale "
+                           "of docs/results.md: python pebble.py --env-id walker-walk --total-timesteps 100000 "
+                           "--hidden-dim 256"), note

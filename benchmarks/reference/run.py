@@ -192,7 +192,8 @@ def final_reward_correlation(model: dict, args: Args) -> float:
     reward_model = pebble.RewardEnsemble(obs_dim, action_dim, len({key.split(".")[1] for key in model["reward_model"]}))
     reward_model.load_state_dict(model["reward_model"])
     seeds = [pebble.episode_seed(args.seed, pebble.EVAL_STREAM, j) for j in range(args.eval_episodes)]
-    return pebble.evaluate(actor, reward_model, env, seeds, torch.device("cpu"))["reward_correlation"]
+    policy = pebble.mean_policy(actor, torch.device("cpu"))
+    return pebble.evaluate(policy, reward_model, env, seeds, torch.device("cpu"))["reward_correlation"]
 
 
 def main(args: Args) -> int:
