@@ -53,8 +53,8 @@ class Args:
     """DMC `domain-task`, Meta-World v3 task name (with or without -v3), or a Gymnasium id"""
     total_timesteps: int | None = None
     """total environment steps"""
-    teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic"] = "oracle"
-    """simulated teacher (paper Section 3.3)"""
+    teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic", "human"] = "oracle"
+    """simulated teacher (paper Section 3.3), or human: a person, in label_server.py's page"""
     teacher_beta: float | None = None
     """overrides the teacher's rationality beta (inf = rational)"""
     teacher_gamma: float | None = None
@@ -585,7 +585,10 @@ def feedback_session(args, progress, size, episodes, preferences, reward_model, 
     # code)
     mean_return = float(np.mean(progress.recent_returns))
     teacher.set_thresholds(mean_return, args.segment_len, episode_len)
-    y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
+    if args.teacher == "human":
+        y, keep = ask_person(args, progress, segments, episodes)
+    else:
+        y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
     # the thresholds' unit: fit_teacher.py
     threshold_scale = mean_return * args.segment_len / episode_len
     data = io.BytesIO()
@@ -690,7 +693,7 @@ def resolve(args: Args) -> Args:
         return Args(**saved | kept | {"output_dir": args.resume})
     families = {"dmc": DMC_PRESET, "metaworld": METAWORLD_PRESET, "gym": GYM_PRESET}
     family = families[env_kind(args.env_id)]
-    teacher = make_teacher(args.teacher)
+    teacher = make_teacher("oracle" if args.teacher == "human" else args.teacher)
     preset = PRESETS.get(args.env_id.removesuffix("-v3"), family)
     preset |= {f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}
     for key, value in preset.items():
@@ -922,6 +925,57 @@ def set_labels_aside(output_dir: str, progress):
         os.replace(path, os.path.join(aside_dir, os.path.basename(path)))
 
 
+def ask_person(args, progress, segments, episodes) -> tuple[np.ndarray, np.ndarray]:
+    """--teacher human: the session's queries go to queries/session_N.npz, where label_server.py
+    finds them (it replays each segment's episode from its reset seed and actions to show it as a
+    clip); the answers come back from queries/session_N_answers.json, which its page writes one by
+    one. Returns (y, keep) as a SimTeacher does, once every query has an answer."""
+    path = os.path.join(args.output_dir, "queries", f"session_{progress.sessions_done:04d}")
+    n = len(segments["start0"])
+    queries = {"step": progress.global_step}
+    for side in (0, 1):
+        pool = [episodes[e] for e in segments[f"episode{side}"]]
+        ends = segments[f"start{side}"] + args.segment_len
+        actions = np.zeros((n, ends.max(), pool[0][1].shape[1]), np.float32)
+        for i, (episode, end) in enumerate(zip(pool, ends)):
+            actions[i, :end] = episode[1][:end]
+        queries[f"seed{side}"] = np.array([episode[3] for episode in pool])
+        queries[f"start{side}"] = segments[f"start{side}"]
+        queries[f"actions{side}"] = actions
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    data = io.BytesIO()
+    np.savez(data, **queries)
+    save_file(f"{path}.npz", data.getvalue())
+    print(f"step {progress.global_step}: {n} queries wait for a person: python label_server.py "
+          f"{args.output_dir} and open http://127.0.0.1:8000 (stopping the run now loses nothing: "
+          "--resume asks this session again, with the answers given)", flush=True)
+    # While it waits, SIGTERM or SIGINT end the run at once (the checkpoint is already written)
+    handlers = {signum: signal.signal(signum, signal.SIG_DFL)
+                for signum in (signal.SIGTERM, signal.SIGINT)}
+    answers = {}
+    while len(answers) < n:
+        time.sleep(1)
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            with open(f"{path}_answers.json") as f:
+                answers = json.load(f)["answers"]
+    for signum, handler in handlers.items():
+        signal.signal(signum, handler)
+    values = {"left": 0.0, "right": 1.0, "equal": 0.5, "skip": math.nan}
+    y = np.array([values[answers[str(i)]] for i in range(n)])
+    return y, ~np.isnan(y)
+
+
+def labelled_dataset(imported_labels, args, obs_dim: int, action_dim: int, device) -> dict:
+    """The labelled dataset D: both segments' (observation, action) per step, and the label;
+    --labels-from's labels first (they do not count against --max-feedback)."""
+    empty = np.zeros((0, args.segment_len, obs_dim + action_dim), np.float32)
+    preferences = {"inputs0": empty, "inputs1": empty, "y": np.zeros(0, np.float32)}
+    if imported_labels:
+        preferences = imported_labels
+        print(f"--labels-from: {len(preferences['y'])} labels from {args.labels_from}")
+    return {key: torch.as_tensor(value, device=device) for key, value in preferences.items()}
+
+
 EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback",
                 "reward_correlation", "wall_time", "overhead_seconds")
 
@@ -1054,7 +1108,8 @@ if __name__ == "__main__":
     buffer = ReplayBuffer(args.buffer_size, obs_dim, action_dim, device)
     intrinsic_stats = RunningMeanStd()
     teacher_fields = {name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS}
-    teacher = make_teacher(args.teacher, seed=teacher_seed, **teacher_fields)
+    teacher_name = "oracle" if args.teacher == "human" else args.teacher  # human: not used
+    teacher = make_teacher(teacher_name, seed=teacher_seed, **teacher_fields)
     # Feedback sessions from the end of pre-training, every feedback_every steps
     first_session = args.seed_steps + args.unsup_steps + 1
     steps = session_steps(first_session, args.feedback_every, args.total_timesteps)
@@ -1066,13 +1121,7 @@ if __name__ == "__main__":
         print(f"note: only {planned} of the {args.max_feedback} labels of --max-feedback fit in "
               f"{args.total_timesteps} steps (sessions from step {first_session}, every "
               f"{args.feedback_every} steps)")
-    # The labelled dataset D: both segments' (observation, action) per step, and the label
-    empty = np.zeros((0, args.segment_len, obs_dim + action_dim), np.float32)
-    preferences = {"inputs0": empty, "inputs1": empty, "y": np.zeros(0, np.float32)}
-    if imported_labels:
-        preferences = imported_labels
-        print(f"--labels-from: {len(preferences['y'])} labels from {args.labels_from}")
-    preferences = {key: torch.as_tensor(value, device=device) for key, value in preferences.items()}
+    preferences = labelled_dataset(imported_labels, args, obs_dim, action_dim, device)
     # The query pool: the last query_recent_episodes complete episodes (reference code: 100)
     episodes = deque(maxlen=args.query_recent_episodes or None)
     progress = Progress(next_feedback_step=first_session)
@@ -1118,6 +1167,11 @@ if __name__ == "__main__":
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
                     and progress.sessions_done < len(session_sizes)
                     and any(len(episode[0]) >= args.segment_len for episode in episodes)):
+                if args.teacher == "human":  # a checkpoint first: --resume asks this session again
+                    progress.wall_time = time.time() - start_time
+                    state = snapshot(parts)
+                    state["progress"]["global_step"] = global_step - 1  # the state after that step
+                    save_checkpoint(checkpoint_path, state, global_step - 1)
                 with progress.overhead():
                     size = int(session_sizes[progress.sessions_done])
                     n_labels = feedback_session(args, progress, size, episodes, preferences,
@@ -1158,8 +1212,10 @@ if __name__ == "__main__":
                 part.append(value)
             obs = next_obs
             if terminated or truncated:  # to the query pool; the next episode from its own seed
-                episode = tuple(np.array(part, np.float32) for part in progress.running_episode)
-                episodes.append(episode)
+                # the episode's arrays and its reset seed (--teacher human replays it)
+                seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes)
+                episodes.append((*(np.array(part, np.float32) for part in progress.running_episode),
+                                 seed))
                 episode_return = float(sum(progress.running_episode[2]))
                 progress.recent_returns = (progress.recent_returns + [episode_return])[-10:]
                 writer.add_scalar("charts/episodic_return", episode_return, global_step)

@@ -216,11 +216,17 @@ def random_pairs(
 
 
 def draw_segments(episodes, segment_len: int, n_pairs: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """n_pairs candidate pairs (random_pairs) cut from stored episodes, each a tuple of per-step arrays (observations,
-    actions, true rewards) of one length: {"obs0", "actions0", "rewards0", "obs1", "actions1", "rewards1"}, each of
-    shape (n_pairs, segment_len, ...); side 0 is sigma0, side 1 sigma1."""
+    """n_pairs candidate pairs (random_pairs) cut from stored episodes, each a tuple whose first three entries are
+    per-step arrays (observations, actions, true rewards) of one length: {"obs0", "actions0", "rewards0", "obs1",
+    "actions1", "rewards1"}, each of shape (n_pairs, segment_len, ...), and where each segment was cut:
+    "episode0"/"episode1" (indices into `episodes`) and "start0"/"start1" (its first step there), each (n_pairs,);
+    side 0 is sigma0, side 1 sigma1."""
     e0, s0, e1, s1 = random_pairs([len(episode[0]) for episode in episodes], segment_len, n_pairs, rng)
     window = np.arange(segment_len)
-    return {f"{key}{side}": np.stack([episodes[e][part][s + window] for e, s in zip(es, ss)])
-            for side, (es, ss) in enumerate(((e0, s0), (e1, s1)))
-            for part, key in enumerate(("obs", "actions", "rewards"))}
+    pairs = {}
+    for side, (es, ss) in enumerate(((e0, s0), (e1, s1))):
+        for part, key in enumerate(("obs", "actions", "rewards")):
+            pairs[f"{key}{side}"] = np.stack([episodes[e][part][s + window] for e, s in zip(es, ss)])
+        pairs[f"episode{side}"] = es
+        pairs[f"start{side}"] = ss
+    return pairs

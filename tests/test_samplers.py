@@ -502,6 +502,8 @@ def test_draw_segments_cuts_the_drawn_windows_out_of_every_part_of_the_episodes(
         np.testing.assert_array_equal(segments[f"obs{side}"][..., 0], start[:, None] + window)
         np.testing.assert_array_equal(segments[f"actions{side}"][..., 0], -(start[:, None] + window))
         np.testing.assert_array_equal(segments[f"rewards{side}"], (1000 * e + s)[:, None] + window)
+        np.testing.assert_array_equal(segments[f"episode{side}"], e)  # where each segment was cut
+        np.testing.assert_array_equal(segments[f"start{side}"], s)
     assert segments["obs0"].shape == (500, 10, 1) and segments["rewards1"].shape == (500, 10)
     assert 1 not in set(e0) | set(e1)
 

@@ -1,0 +1,126 @@
+"""--teacher human, the script's side: each feedback session writes its queries (reset seeds, starts and actions
+of the segments' episodes) to queries/session_N.npz, checkpoints, waits for queries/session_N_answers.json (which
+label_server.py's page writes) and learns from exactly those answers; a run stopped while it waits resumes with
+the answers given. Here the test writes the answers file as the page would."""
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+import torch
+
+import pebble
+from tests.helpers import finished_counts, saved_labels, start_script
+
+ANSWERS = ["left", "right", "equal", "skip"]
+Y = {"left": 0.0, "right": 1.0, "equal": 0.5}
+COMMON = ["--env-id", "Pendulum-v1", "--teacher", "human", "--segment-len", "10", "--hidden-dim", "16",
+          "--num-layers", "1", "--max-feedback", "8", "--feedback-per-session", "4", "--eval-episodes", "1",
+          "--reward-epochs", "2", "--sampler", "disagreement"]
+FLAGS = {  # two sessions each
+    "pebble.py": [*COMMON, "--total-timesteps", "900", "--seed-steps", "100", "--unsup-steps", "200",
+                  "--batch-size", "16", "--feedback-every", "300", "--eval-every", "450"],
+    "prefppo.py": [*COMMON, "--total-timesteps", "1200", "--unsup-steps", "200", "--num-envs", "2",
+                   "--num-steps", "100", "--minibatch-size", "100", "--feedback-every", "400", "--eval-every", "600",
+                   "--update-epochs", "1", "--unsup-update-epochs", "1"],
+}
+
+
+def wait_for_file(path, process, timeout=300):
+    deadline = time.time() + timeout
+    while not path.exists():
+        assert process.poll() is None, process.communicate()
+        assert time.time() < deadline, f"no {path}"
+        time.sleep(0.2)
+    time.sleep(0.5)  # written atomically; let the run reach its wait
+
+
+def answer(out, session: int, answers: dict):
+    """As label_server.py writes it: atomically, the ids in the order answered."""
+    path = out / "queries" / f"session_{session:04d}_answers.json"
+    path.with_suffix(".tmp").write_text(json.dumps({"order": [int(i) for i in answers], "answers": answers}))
+    os.replace(path.with_suffix(".tmp"), path)
+
+
+def replayed_segment(seed: int, start: int, actions: np.ndarray, segment_len: int) -> np.ndarray:
+    """The observations of a segment, from its episode's reset seed and actions alone (what the page shows)."""
+    env, _ = pebble.make_env("Pendulum-v1")
+    obs, _ = env.reset(seed=int(seed))
+    for action in actions[:start]:
+        obs = env.step(action)[0]
+    states = []
+    for action in actions[start : start + segment_len]:
+        states.append(obs)
+        obs = env.step(action)[0]
+    return np.array(states)
+
+
+@pytest.mark.parametrize("script", ["pebble.py", "prefppo.py"])
+def test_a_person_s_answers_are_the_labels_the_run_learns_from(script, tmp_path):
+    out = tmp_path / "run"
+    process = start_script(script, out, *FLAGS[script])
+    try:
+        queries = []
+        for session in (0, 1):
+            wait_for_file(out / "queries" / f"session_{session:04d}.npz", process)
+            queries.append(dict(np.load(out / "queries" / f"session_{session:04d}.npz")))
+            assert process.poll() is None  # it waits for the person
+            time.sleep(1.5)
+            assert not (out / "labels" / f"session_{session:04d}.npz").exists()
+            answer(out, session, {str(i): a for i, a in enumerate(ANSWERS if session == 0 else ANSWERS[::-1])})
+        stdout, stderr = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 0, stderr
+    assert "queries wait for a person: python label_server.py" in stdout
+    assert stdout.count("checkpoint.pt saved") >= 2  # one before each session
+    labels = saved_labels(out)
+    assert len(labels) == 2 and finished_counts(stdout)["updates_on_learned_reward"] > 0
+    for session, (saved, asked) in enumerate(zip(labels, queries)):
+        given = ANSWERS if session == 0 else ANSWERS[::-1]
+        np.testing.assert_array_equal(saved["keep"], [a != "skip" for a in given])
+        np.testing.assert_array_equal(saved["y"][saved["keep"]], [Y[a] for a in given if a != "skip"])
+        for side in (0, 1):  # the page's replay from seed and actions is exactly the queried segment
+            for i in range(4):
+                segment = replayed_segment(asked[f"seed{side}"][i], asked[f"start{side}"][i],
+                                           asked[f"actions{side}"][i], 10)
+                np.testing.assert_array_equal(segment, saved[f"obs{side}"][i])
+                start = asked[f"start{side}"][i]
+                np.testing.assert_array_equal(asked[f"actions{side}"][i][start : start + 10], saved[f"actions{side}"][i])
+
+
+def test_a_run_stopped_while_it_waits_resumes_the_session_with_the_answers_given(tmp_path):
+    out = tmp_path / "run"
+    process = start_script("pebble.py", out, *FLAGS["pebble.py"])
+    try:
+        wait_for_file(out / "queries" / "session_0000.npz", process)
+        first = dict(np.load(out / "queries" / "session_0000.npz"))
+        answer(out, 0, {"0": "right", "1": "left"})  # half of them, then the person stops the run
+        time.sleep(1.5)
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode != 0
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert saved["progress"]["global_step"] == 300 and saved["progress"]["sessions_done"] == 0
+    (out / "queries" / "session_0000.npz").unlink()
+    resumed = start_script("pebble.py", out, "--resume", str(out))
+    try:
+        wait_for_file(out / "queries" / "session_0000.npz", resumed)
+        again = dict(np.load(out / "queries" / "session_0000.npz"))
+        assert all(np.array_equal(first[key], again[key]) for key in first)  # the same queries again
+        answer(out, 0, {"0": "right", "1": "left", "2": "skip", "3": "equal"})
+        wait_for_file(out / "queries" / "session_0001.npz", resumed)
+        answer(out, 1, {str(i): "left" for i in range(4)})
+        stdout, stderr = resumed.communicate(timeout=300)
+    finally:
+        resumed.kill()
+    assert resumed.returncode == 0, stderr
+    assert "resuming from the checkpoint at step 300" in stdout
+    labels = saved_labels(out)
+    np.testing.assert_array_equal(labels[0]["keep"], [True, True, False, True])
+    np.testing.assert_array_equal(labels[0]["y"][labels[0]["keep"]], [1.0, 0.0, 0.5])
