@@ -39,11 +39,11 @@ from scipy.stats import chi2
 from sim_teacher import SimTeacher
 
 MIN_STRICT = 20  # strict labels (0 or 1) below which beta, gamma and eps_mistake are not estimable
-GAMMAS = np.concatenate([1 - np.geomspace(0.99, 1e-4, 63), [1.0]])  # increasing, fine near 1
+GAMMAS = np.concatenate([1 - np.geomspace(0.99, 1e-4, 39), [1.0]])  # increasing, fine near 1
 DENSE_GAMMAS = np.concatenate([1 - np.geomspace(0.99, 1e-4, 2000), [1.0]])  # the rational teacher's
-EPSILONS = np.concatenate([[0.0], np.geomspace(1e-3, 0.05, 16, endpoint=False),
-                           np.linspace(0.05, 0.5, 46)])
-N_BETAS = 64  # grid of beta: 0, N_BETAS values log-spaced over the relevant range, inf
+EPSILONS = np.concatenate([[0.0], np.geomspace(1e-3, 0.05, 8, endpoint=False),
+                           np.linspace(0.05, 0.5, 19)])
+N_BETAS = 48  # grid of beta: 0, N_BETAS values log-spaced over the relevant range, inf
 BISECTIONS = 8  # steps locating an end of an interval between two grid values
 TEACHER = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher, --teacher-*
 
@@ -128,6 +128,8 @@ def simulate(directory: str, teacher: SimTeacher, pairs: int = 1000, sessions: i
     its own scale (log-uniform over 1.5 decades: near-ties and clear pairs both occur), each segment
     a level and a linear trend (so the myopic discount matters), and the levels rise from session to
     session as a learning policy's. R_avg = the session's mean segment return * T / H."""
+    if glob.glob(os.path.join(directory, "labels", "session_*.npz")):
+        raise ValueError(f"{directory!r} already holds label files: simulate into a new directory")
     rng = np.random.default_rng([seed, 23])  # a stream apart from a teacher's own default_rng(seed)
     os.makedirs(os.path.join(directory, "labels"), exist_ok=True)
     config = {"teacher": "oracle", "simulated": True, "segment_len": segment_len}

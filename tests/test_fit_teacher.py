@@ -1,0 +1,239 @@
+"""Specification of fit_teacher.py: fitted to SimTeacher's own labels, the fit finds that teacher.
+
+Labels come from SimTeacher on fit_teacher.simulate's synthetic pairs (H = 50, per-step rewards in
+[0, 1], pair scales over 1.5 decades, sessions with their own R_avg), with fixed seeds. Each bound
+is the range that 40 seeds of the same setting gave (docs/teacher_fit.md, "How well it recovers"),
+widened a little: a correct fit passes, and one off by more than its sampling spread fails.
+"""
+
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import fit_teacher  # noqa: E402
+from fit_teacher import fit, fit_threshold, load_labels, simulate, teacher_overrides  # noqa: E402
+from sim_teacher import TEACHERS, SimTeacher, make_teacher  # noqa: E402
+
+FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")
+INF = math.inf
+
+
+def fitted(directory, pairs=400, sessions=4, seed=0, **teacher) -> dict:
+    """Simulate a run whose labels `teacher` gives, and fit it."""
+    simulate(str(directory), SimTeacher(**teacher, seed=seed), pairs, sessions, seed=seed)
+    data = load_labels(str(directory))
+    return fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], data["threshold_scale"])
+
+
+def assert_recovered(result: dict, teacher: SimTeacher, bounds: dict):
+    """Every estimate within its bounds, and every interval holding the true value."""
+    for name in FIELDS:
+        low, high = bounds[name]
+        assert low <= result[name] <= high, (name, result[name], bounds[name])
+        ci_low, ci_high = result["ci"][name]
+        assert ci_low <= getattr(teacher, name) <= ci_high, (name, result["ci"][name])
+
+
+# The paper's six teachers, 400 pairs, seed 0: (low, high) of each estimate. Labels that never
+# contradict the returns must give beta = inf and eps = 0 exactly.
+RATIONAL = {"beta": (INF, INF), "gamma": (1.0, 1.0), "eps_mistake": (0.0, 0.0),
+            "eps_skip": (0.0, 0.0), "eps_equal": (0.0, 0.0)}
+BOUNDS = {
+    "oracle": RATIONAL,
+    # 40 seeds: beta 0.85 - 1.56 (the MLE leans high: an eps > 0 goes with a larger beta),
+    # gamma >= 0.991, eps <= 0.027
+    "stoc": RATIONAL | {"beta": (0.7, 1.7), "gamma": (0.98, 1.0), "eps_mistake": (0.0, 0.04)},
+    # 40 seeds: eps 0.06 - 0.13, gamma >= 0.996, beta >= 27 (P(wrong | no mistake) < 1e-10 at the
+    # median |A|): rational
+    "mistake": RATIONAL | {"beta": (20, INF), "gamma": (0.99, 1.0), "eps_mistake": (0.05, 0.15)},
+    # 40 seeds: eps_skip 0.088 - 0.107
+    "skip": RATIONAL | {"eps_skip": (0.085, 0.115)},
+    # 40 seeds: eps_equal 0.097 - 0.102
+    "equal": RATIONAL | {"eps_equal": (0.095, 0.105)},
+    # 40 seeds: gamma 0.896 - 0.906, and always beta = inf, eps = 0 (labels consistent at gamma)
+    "myopic": RATIONAL | {"gamma": (0.89, 0.91)},
+}
+
+
+@pytest.mark.parametrize("name", BOUNDS)
+def test_each_teacher_of_the_paper_is_recovered_within_its_spread(tmp_path, name):
+    assert_recovered(fitted(tmp_path, **TEACHERS[name]), make_teacher(name), BOUNDS[name])
+
+
+def test_oracle_labels_give_beta_inf_and_no_mistakes_with_tight_intervals(tmp_path):
+    result = fitted(tmp_path)
+    assert result["beta"] == INF and result["eps_mistake"] == 0.0
+    assert result["ci"]["beta"][1] == INF and result["ci"]["beta"][0] > 10  # not stochastic
+    assert result["ci"]["eps_mistake"] == (0.0, pytest.approx(0.0, abs=0.02))
+    assert result["n_skipped"] == result["n_equal"] == 0
+
+
+def test_intervals_tell_the_teachers_apart(tmp_path):
+    """Not merely wide: the myopic teacher's gamma interval excludes 1, the stochastic teacher's
+    beta interval excludes inf and both halving and doubling beta."""
+    myopic = fitted(tmp_path / "myopic", gamma=0.9)
+    assert myopic["ci"]["gamma"][1] < 0.95
+    stoc = fitted(tmp_path / "stoc", beta=1.0)
+    assert 0.5 < stoc["ci"]["beta"][0] and stoc["ci"]["beta"][1] < 2.0
+
+
+def test_all_five_at_once(tmp_path):
+    # 1000 pairs in 10 sessions, 40 seeds: beta 0.58 - 1.55, gamma 0.922 - 0.964, eps_mistake
+    # 0 - 0.165 (beta and eps_mistake trade off: seed 0 has a low beta and eps 0), eps_skip
+    # 0.098 - 0.103, eps_equal 0.0486 - 0.0518.
+    fields = {"beta": 1.0, "gamma": 0.95, "eps_mistake": 0.1, "eps_skip": 0.1, "eps_equal": 0.05}
+    result = fitted(tmp_path, pairs=1000, sessions=10, **fields)
+    assert_recovered(result, SimTeacher(**fields), {
+        "beta": (0.5, 1.8), "gamma": (0.91, 0.975), "eps_mistake": (0.0, 0.2),
+        "eps_skip": (0.095, 0.105), "eps_equal": (0.047, 0.053)})
+
+
+def test_intervals_cover_the_truth_at_about_their_level(tmp_path):
+    """95% intervals, 10 seeds of the stochastic teacher: at least 8 cover each true value (40 seeds
+    gave 90% for beta, 97% for gamma and eps); and they are short, beta's within a factor 2."""
+    results = [fitted(tmp_path / str(seed), seed=seed, beta=1.0) for seed in range(10)]
+    truth = {"beta": 1.0, "gamma": 1.0, "eps_mistake": 0.0}
+    for name, value in truth.items():
+        covered = sum(r["ci"][name][0] <= value <= r["ci"][name][1] for r in results)
+        assert covered >= 8, (name, covered)
+    assert np.median([r["ci"]["beta"][1] / r["ci"]["beta"][0] for r in results]) < 2.0
+
+
+def test_a_threshold_that_lapses_is_fitted_with_its_disagreements():
+    """A person is no threshold: 3 decisions against the rule are counted, and the threshold still
+    comes out where the other decisions put it."""
+    rng = np.random.default_rng(0)
+    values, scales = rng.uniform(0, 40, 300), rng.uniform(10, 30, 300)
+    hits = values < 0.2 * scales
+    hits[np.flatnonzero(values > 0.5 * scales)[:3]] = True  # skipped although clearly good enough
+    part = fit_threshold(values, scales, hits, 1.0, 0.95)
+    assert part["disagreements"] == 3
+    assert part["estimate"] == pytest.approx(0.2, abs=0.01)
+    assert part["ci"][0] <= 0.2 <= part["ci"][1] and part["ci"][1] - part["ci"][0] < 0.05
+
+
+def test_the_cli_prints_the_flags_of_the_fitted_teacher(tmp_path):
+    """--simulate writes a run, the table shows the run's teacher beside the fit, and the printed
+    flags make the fitted teacher: make_teacher("oracle", **flags) has the fitted fields."""
+    run = tmp_path / "run"
+    command = [sys.executable, str(ROOT / "fit_teacher.py"), "--labels", str(run), "--simulate",
+               "--pairs", "400", "--sessions", "4", "--teacher-gamma", "0.9"]
+    out = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    header = r"^parameter +estimate +95% CI \(profile likelihood\) +run's teacher$"
+    assert re.search(header, out.stdout, re.M)
+    assert re.search(r"^gamma +0\.9\d* +\[[\d.]+, [\d.]+\] +0\.9$", out.stdout, re.M)
+    command = out.stdout.strip().splitlines()[-1].split()
+    assert command[:2] == ["--teacher", "oracle"]
+    flags = {command[i].removeprefix("--teacher-").replace("-", "_"): float(command[i + 1])
+             for i in range(2, len(command), 2)}
+    assert set(flags) == set(FIELDS)
+    data = load_labels(str(run))
+    result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"],
+                 data["threshold_scale"])
+    teacher = make_teacher("oracle", **flags)
+    for name in FIELDS:
+        assert getattr(teacher, name) == pytest.approx(result[name], rel=1e-3), name
+    assert flags == teacher_overrides(result)
+    for script in ("pebble.py", "prefppo.py"):  # the flags the scripts take
+        source = (ROOT / script).read_text()
+        for name in FIELDS:
+            assert re.search(rf"^    teacher_{name}: float", source, re.M), (script, name)
+
+
+def test_files_without_threshold_scale_give_thresholds_in_return_units(tmp_path, capsys,
+                                                                         monkeypatch):
+    """Label files of older runs (observations and actions, no threshold_scale): the skip threshold
+    in return units, no --teacher-eps-skip flag; an equal rule never used is still eps_equal = 0."""
+    simulate(str(tmp_path), SimTeacher(eps_skip=0.1, seed=0), pairs=400, sessions=1, seed=0)
+    file = tmp_path / "labels" / "session_0000.npz"
+    with np.load(file) as data:
+        session = dict(data)
+    delta_skip = 0.1 * float(session.pop("threshold_scale"))
+    n = len(session["y"])
+    observations, actions = np.zeros((n, 50, 3), np.float32), np.zeros((n, 50, 1), np.float32)
+    np.savez(file, **session, obs0=observations, actions0=actions, obs1=observations,
+             actions1=actions)
+    monkeypatch.setattr(sys, "argv", ["fit_teacher.py", "--labels", str(tmp_path)])
+    fit_teacher.main()
+    printed = capsys.readouterr().out
+    data = load_labels(str(tmp_path))
+    result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"])
+    assert result["eps_skip"] is None and result["eps_equal"] == 0.0
+    # never "equal": any threshold up to the smallest gap between a kept pair's returns explains it
+    returns0, returns1 = (data[key].astype(np.float64).sum(1) for key in ("rewards0", "rewards1"))
+    gaps = np.abs(returns1 - returns0)[data["keep"]]
+    assert result["ci"]["delta_equal"] == (0.0, pytest.approx(gaps.min(), rel=1e-6))
+    assert result["delta_skip"] == pytest.approx(delta_skip, rel=0.1)
+    assert result["ci"]["delta_skip"][0] <= delta_skip <= result["ci"]["delta_skip"][1]
+    flags = printed.strip().splitlines()[-1]
+    assert "--teacher-eps-skip" not in flags and flags.endswith("--teacher-eps-equal 0")
+    assert re.search(r"^note: the label files lack threshold_scale", printed, re.M)
+    assert re.search(r"^delta_skip ", printed, re.M) and not re.search(r"^eps_skip", printed, re.M)
+
+
+def write_session(directory: Path, **arrays):
+    (directory / "labels").mkdir(parents=True, exist_ok=True)
+    np.savez(directory / "labels" / "session_0000.npz", **arrays)
+
+
+def good(n=60, h=50):
+    rng = np.random.default_rng(0)
+    rewards0, rewards1 = rng.uniform(0, 1, (n, h)), rng.uniform(0, 1, (n, h))
+    y, keep = SimTeacher(beta=1.0, seed=0).label(rewards0, rewards1)
+    return {"rewards0": rewards0, "rewards1": rewards1, "y": y, "keep": keep, "step": 0}
+
+
+BAD = {
+    "no such directory": lambda d: None,
+    "no label files": lambda d: (d / "labels").mkdir(parents=True),
+    "not an npz": lambda d: ((d / "labels").mkdir(parents=True),
+                             (d / "labels" / "session_0000.npz").write_text("hello")),
+    "1-D rewards": lambda d: write_session(d, **good() | {"rewards0": np.zeros(60),
+                                                          "rewards1": np.zeros(60)}),
+    "y of another length": lambda d: write_session(d, **good() | {"y": np.ones(59)}),
+    "no keep": lambda d: write_session(d, **{k: v for k, v in good().items() if k != "keep"}),
+    "a label outside 0, 0.5, 1": lambda d: write_session(d, **good() | {"y": np.full(60, 0.3)}),
+    "fewer than 20 strict labels": lambda d: write_session(d, **good(n=15)),
+    "segment lengths that differ": lambda d: (write_session(d, **good()), np.savez(
+        d / "labels" / "session_0001.npz", **good(h=40))),
+    "--simulate into a run with labels": lambda d: write_session(d, **good()),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_bad_input_exits_2_with_one_error_line(tmp_path, capsys, monkeypatch, case):
+    BAD[case](tmp_path)
+    simulate_flag = ["--simulate"] if case.startswith("--simulate") else []
+    monkeypatch.setattr(sys, "argv", ["fit_teacher.py", "--labels", str(tmp_path)] + simulate_flag)
+    with pytest.raises(SystemExit) as exit_:
+        fit_teacher.main()
+    assert exit_.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and re.fullmatch(r"error: [^\n]+\n", captured.err), captured.err
+
+
+def test_bad_input_from_the_shell_has_no_traceback(tmp_path):
+    write_session(tmp_path, **good(n=15))
+    out = subprocess.run([sys.executable, str(ROOT / "fit_teacher.py"), "--labels", str(tmp_path)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 2 and out.stdout == ""
+    assert re.fullmatch(r"error: [^\n]*15 strict labels[^\n]*\n", out.stderr), out.stderr
+
+
+def test_the_api_rejects_bad_arrays():
+    data = good()
+    with pytest.raises(ValueError, match="one shape"):
+        fit(data["rewards0"], data["rewards1"][:, :10], data["y"], data["keep"])
+    with pytest.raises(ValueError, match="threshold_scale"):
+        fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], threshold_scale=math.nan)
+    with pytest.raises(ValueError, match="level"):
+        fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], level=1.5)
