@@ -133,8 +133,8 @@ def simulate(directory: str, teacher: SimTeacher, pairs: int = 1000, sessions: i
     rng = np.random.default_rng([seed, 23])  # a stream apart from a teacher's own default_rng(seed)
     os.makedirs(os.path.join(directory, "labels"), exist_ok=True)
     config = {"teacher": "oracle", "simulated": True, "segment_len": segment_len}
+    config |= {f"teacher_{name}": getattr(teacher, name) for name in TEACHER}
     with open(os.path.join(directory, "config.json"), "w") as f:
-        config |= {f"teacher_{name}": getattr(teacher, name) for name in TEACHER}
         json.dump(config, f, indent=2)
     t = np.linspace(-0.5, 0.5, segment_len)
     for session, n in enumerate(np.diff(np.linspace(0, pairs, sessions + 1).round().astype(int))):
@@ -458,12 +458,16 @@ def report(result: dict, truth: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-def run_teacher(directory: str) -> dict | None:
-    """The simulated teacher of the run in `directory` (its config.json), None if none is known."""
+def run_teacher(path: str) -> dict | None:
+    """The simulated teacher of the run whose labels `path` holds (from the config.json of the run
+    directory, of --labels or up to two levels above it), None if none is known."""
+    path = os.path.abspath(path)
+    configs = [os.path.join(d, "config.json")
+               for d in (path, os.path.dirname(path), os.path.dirname(os.path.dirname(path)))]
     try:
-        with open(os.path.join(directory, "config.json")) as f:
+        with open(next(c for c in configs if os.path.isfile(c))) as f:
             saved = json.load(f)
-    except (OSError, ValueError):
+    except (StopIteration, OSError, ValueError):
         return None
     truth = {name: saved.get(f"teacher_{name}") for name in TEACHER}
     if saved.get("teacher") == "human" or not all(isinstance(v, (int, float))
