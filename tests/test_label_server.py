@@ -1,0 +1,410 @@
+"""label_server.py, the labelling page of --teacher human: answers written as given (atomically,
+once each), undo, the errors of bad input, clips that are exact replays, nothing else served; and
+a real browser (headless Chromium) clicking through a session."""
+
+import http.client
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import label_server
+import pebble
+from tests.helpers import ENV, ROOT
+
+ENV_ID = "tests.render_envs:Frames-v0"  # 30-step episodes, 120 x 160 frames, no OpenGL
+SEGMENT_LEN = 5
+
+
+def write_session(run_dir, number: int, n: int, seed: int = 0):
+    """A session file as the run writes it (the protocol of docs/human_teacher.md): n queries of
+    two segments, each from an episode given by its reset seed and actions up to its end."""
+    rng = np.random.default_rng([seed, number])
+    arrays = {"step": np.int64(1000 * (number + 1))}
+    for side in (0, 1):
+        starts = rng.integers(0, 30 - SEGMENT_LEN + 1, n)
+        length = starts.max() + SEGMENT_LEN
+        actions = np.zeros((n, length, 2), np.float32)
+        for i, start in enumerate(starts):
+            actions[i, :start + SEGMENT_LEN] = rng.uniform(-1, 1, (start + SEGMENT_LEN, 2))
+        arrays[f"seed{side}"] = rng.integers(0, 2**31, n).astype(np.int64)
+        arrays[f"start{side}"] = starts.astype(np.int64)
+        arrays[f"actions{side}"] = actions
+    path = run_dir / "queries" / f"session_{number:04d}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path.with_suffix(".tmp.npz"), **arrays)
+    os.replace(path.with_suffix(".tmp.npz"), path)
+    return arrays
+
+
+def make_run(run_dir, n: int = 4):
+    run_dir.mkdir()
+    config = {"env_id": ENV_ID, "segment_len": SEGMENT_LEN, "seed": 1}
+    (run_dir / "config.json").write_text(json.dumps(config))
+    return write_session(run_dir, 0, n)
+
+
+@pytest.fixture
+def run(tmp_path):
+    """A run waiting at session 0 (4 queries), and its label server on a free port."""
+    run_dir = tmp_path / "run"
+    arrays = make_run(run_dir)
+    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
+    yield run_dir, server, arrays
+    server.close()
+
+
+def request(server, method: str, path: str, body=None, content_type="application/json"):
+    """(status, the JSON reply or the raw bytes of an image)."""
+    connection = http.client.HTTPConnection(*server.server_address[:2], timeout=60)
+    data = body if isinstance(body, (bytes, type(None))) else json.dumps(body).encode()
+    connection.request(method, path, data, {"Content-Type": content_type} if data else {})
+    response = connection.getresponse()
+    payload = response.read()
+    connection.close()
+    if response.getheader("Content-Type") == "application/json":
+        return response.status, json.loads(payload)
+    return response.status, payload
+
+
+def answer(server, query: int, label: str, session: int = 0):
+    return request(server, "POST", "/api/answer", {"session": session, "id": query, "label": label})
+
+
+def answers_file(run_dir, session: int = 0) -> dict:
+    return json.loads((run_dir / "queries" / f"session_{session:04d}_answers.json").read_text())
+
+
+def test_each_answer_is_in_the_answers_file_as_it_is_given(run):
+    run_dir, server, _ = run
+    assert request(server, "GET", "/api/state")[1] == {
+        "env_id": ENV_ID, "segment_len": 5, "columns": 5, "session": 0, "step": 1000, "n": 4,
+        "answered": 0, "next": 0, "after": 1, "last": None}
+    status, state = answer(server, 0, "left")
+    assert status == 200 and (state["answered"], state["next"], state["last"]) == (1, 1, 0)
+    assert answers_file(run_dir) == {"order": [0], "answers": {"0": "left"}}
+    answer(server, 2, "equal")  # any unanswered pair; the page shows the first unanswered next
+    status, state = answer(server, 1, "skip")
+    assert answers_file(run_dir) == {"order": [0, 2, 1],
+                                     "answers": {"0": "left", "2": "equal", "1": "skip"}}
+    assert (state["answered"], state["next"], state["after"], state["last"]) == (3, 3, None, 1)
+
+
+def test_the_answers_file_is_replaced_whole_never_written_in_place(run, monkeypatch):
+    run_dir, server, _ = run
+    replaced = []
+    real_replace = os.replace
+
+    def spy(source, destination):
+        replaced.append((str(source), str(destination)))
+        real_replace(source, destination)
+
+    monkeypatch.setattr(os, "replace", spy)
+    answer(server, 0, "right")
+    request(server, "POST", "/api/undo", {"session": 0, "id": 0})
+    answers = str(run_dir / "queries" / "session_0000_answers.json")
+    assert replaced == [(answers + ".tmp", answers)] * 2
+    assert sorted(os.listdir(run_dir / "queries")) == ["session_0000.npz",
+                                                       "session_0000_answers.json"]
+
+
+def test_undo_removes_the_last_answer_only(run):
+    run_dir, server, _ = run
+    answer(server, 0, "left")
+    answer(server, 1, "right")
+    status, reply = request(server, "POST", "/api/undo", {"session": 0, "id": 0})
+    assert status == 409 and reply["error"] == "pair 0 is not the last answer (the last is 1)"
+    status, state = request(server, "POST", "/api/undo", {"session": 0, "id": 1})
+    assert status == 200 and (state["answered"], state["next"], state["last"]) == (1, 1, 0)
+    assert answers_file(run_dir) == {"order": [0], "answers": {"0": "left"}}
+    answer(server, 1, "equal")  # answered again after the undo: counted once
+    assert answers_file(run_dir) == {"order": [0, 1], "answers": {"0": "left", "1": "equal"}}
+    request(server, "POST", "/api/undo", {"session": 0, "id": 1})
+    request(server, "POST", "/api/undo", {"session": 0, "id": 0})
+    status, reply = request(server, "POST", "/api/undo", {"session": 0, "id": 0})
+    assert status == 409 and reply["error"] == "pair 0 is not the last answer (the last is None)"
+    assert answers_file(run_dir) == {"order": [], "answers": {}}
+
+
+def test_a_second_answer_to_a_pair_is_a_409_and_the_first_one_stands(run):
+    run_dir, server, _ = run
+    answer(server, 0, "left")
+    status, reply = answer(server, 0, "right")  # a second browser, showing pair 0 still
+    assert status == 409 and reply["error"] == "pair 0 is answered already"
+    assert reply["state"]["next"] == 1  # where that page goes
+    assert answers_file(run_dir) == {"order": [0], "answers": {"0": "left"}}
+
+
+def test_simultaneous_answers_to_one_pair_count_once(run):
+    run_dir, server, _ = run
+    statuses = []
+    threads = [threading.Thread(target=lambda label=label: statuses.append(
+        answer(server, 3, label)[0])) for label in ("left", "right", "equal", "skip") * 4]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(statuses) == [200] + [409] * 15
+    saved = answers_file(run_dir)
+    assert saved["order"] == [3] and list(saved["answers"]) == ["3"]
+
+
+@pytest.mark.parametrize("body, status, message", [
+    ({"session": 0, "id": 1, "label": "better"}, 400,
+     "label 'better' is not one of left, right, equal, skip"),
+    ({"session": 0, "id": 1}, 400, "label None is not one of left, right, equal, skip"),
+    ({"session": 0, "id": "1", "label": "left"}, 400, "id must be an integer, not '1'"),
+    ({"session": 0, "id": True, "label": "left"}, 400, "id must be an integer, not True"),
+    ({"session": 0, "id": 4, "label": "left"}, 404,
+     "session 0 has no pair 4 (its pairs are 0 to 3)"),
+    ({"session": 0, "id": -1, "label": "left"}, 404,
+     "session 0 has no pair -1 (its pairs are 0 to 3)"),
+    ({"session": 1, "id": 0, "label": "left"}, 409,
+     "session 1 is not the current session (it is 0)"),
+    ([0, 1, "left"], 400, "the request's body must be a JSON object"),
+    (b"{session: 0", 400, "the request's body is not valid JSON"),
+])
+def test_bad_answers_are_refused_with_a_one_line_message_and_change_nothing(run, body, status,
+                                                                             message):
+    run_dir, server, _ = run
+    answer(server, 0, "left")
+    reply_status, reply = request(server, "POST", "/api/answer", body)
+    assert (reply_status, reply["error"]) == (status, message)
+    assert answers_file(run_dir) == {"order": [0], "answers": {"0": "left"}}
+
+
+def test_a_form_post_from_another_site_is_refused(run):
+    run_dir, server, _ = run
+    body = json.dumps({"session": 0, "id": 0, "label": "left"}).encode()
+    status, reply = request(server, "POST", "/api/answer", body, content_type="text/plain")
+    assert status == 415 and "application/json" in reply["error"]
+    assert not (run_dir / "queries" / "session_0000_answers.json").exists()
+
+
+def test_a_done_session_gives_way_to_waiting_then_to_the_next_session(run):
+    run_dir, server, _ = run
+    for query in range(4):
+        status, state = answer(server, query, "right")
+    assert status == 200 and state["session"] is None  # the page waits for the run
+    status, reply = request(server, "POST", "/api/undo", {"session": 0, "id": 3})
+    assert status == 409 and reply["error"] == (
+        "session 0 is not the current session (none is waiting)")
+    assert request(server, "GET", "/clips/0/0/0.jpg")[0] == 409  # the run has taken its labels
+    write_session(run_dir, 1, 3)
+    state = request(server, "GET", "/api/state")[1]
+    assert (state["session"], state["n"], state["answered"], state["next"]) == (1, 3, 0, 0)
+    assert answer(server, 0, "left", session=0)[0] == 409
+    assert answer(server, 0, "left", session=1)[0] == 200
+    assert answers_file(run_dir, 1) == {"order": [0], "answers": {"0": "left"}}
+
+
+def test_a_new_server_resumes_at_the_first_unanswered_pair(run):
+    run_dir, server, _ = run
+    answer(server, 1, "left")
+    answer(server, 0, "skip")
+    server.close()
+    again = label_server.serve(str(run_dir), "127.0.0.1", 0)
+    try:
+        state = request(again, "GET", "/api/state")[1]
+        assert (state["answered"], state["next"], state["last"]) == (2, 2, 0)
+    finally:
+        again.close()
+
+
+def replay(seed: int, start: int, actions: np.ndarray) -> list:
+    """The protocol's replay, written out here: what the run's segment looked like."""
+    env, _ = pebble.make_env(ENV_ID, render_mode="rgb_array")
+    env.reset(seed=int(seed))
+    for t in range(start):
+        env.step(actions[t])
+    frames = []
+    for t in range(SEGMENT_LEN):
+        frames.append(env.render())
+        env.step(actions[start + t])
+    return frames
+
+
+def test_a_clip_shows_the_segment_the_run_drew_frame_by_frame(run):
+    run_dir, server, arrays = run
+    for query, side in [(2, 1), (0, 0), (2, 0)]:  # one environment renders them all, in any order
+        status, jpeg = request(server, "GET", f"/clips/0/{query}/{side}.jpg")
+        assert status == 200
+        sheet = np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB"), np.float32)
+        assert sheet.shape == (120, 5 * 160, 3)  # 5 frames a row, no scaling under 160 px
+        shown = [sheet[:, 160 * t:160 * (t + 1)] for t in range(SEGMENT_LEN)]
+        expected = replay(arrays[f"seed{side}"][query], arrays[f"start{side}"][query],
+                          arrays[f"actions{side}"][query])
+        for t, frame in enumerate(shown):
+            errors = [np.abs(frame - other).mean() for other in expected]
+            assert errors[t] < 2.0  # JPEG's loss only
+            assert np.argmin(errors) == t  # and not a neighbouring frame
+    clips = sorted(os.listdir(run_dir / "queries" / "session_0000_clips"))
+    assert [name[:6] for name in clips] == ["0000_0", "0002_0", "0002_1"]
+    assert request(server, "GET", "/clips/0/2/1.jpg")[1] == jpeg_of(run_dir, clips[2])  # cached
+
+
+def jpeg_of(run_dir, name: str) -> bytes:
+    return (run_dir / "queries" / "session_0000_clips" / name).read_bytes()
+
+
+def test_a_clip_scales_tall_frames_to_160_pixels():
+    frames = [np.full((480, 640, 3), 10 * t, np.uint8) for t in range(12)]
+    sheet = Image.open(io.BytesIO(label_server.sprite_sheet(frames)))
+    assert sheet.size == (10 * 213, 2 * 160)  # 10 frames a row, each 213 x 160
+
+
+@pytest.mark.parametrize("path", [
+    "/../config.json", "/config.json", "/etc/passwd", "/../../../../etc/passwd",
+    "/queries/session_0000.npz", "/%2e%2e/config.json", "/clips/0/0/../../../config.json",
+    "/api/state/../../config.json", "/index.html", "/queries/"])
+def test_nothing_but_the_page_its_state_and_clips_is_served(run, path):
+    status, reply = request(run[1], "GET", path)
+    assert status == 404 and reply == {"error": f"not found: {path}"}
+
+
+@pytest.mark.parametrize("path, status", [("/clips/0/4/0.jpg", 404), ("/clips/0/0/2.jpg", 404),
+                                          ("/clips/1/0/0.jpg", 409), ("/clips/0/-1/0.jpg", 404)])
+def test_a_clip_outside_the_session_is_refused(run, path, status):
+    assert request(run[1], "GET", path)[0] == status
+    assert not (run[0] / "queries" / "session_0000_clips").exists()
+
+
+def test_the_page_is_served_at_the_root(run):
+    status, page = request(run[1], "GET", "/")
+    assert status == 200 and b"Left is better" in page and b"Can't tell" in page
+
+
+def test_without_a_config_the_server_says_which_run_to_give(tmp_path):
+    with pytest.raises(FileNotFoundError, match="--teacher human"):
+        label_server.serve(str(tmp_path), "127.0.0.1", 0)
+    command = [sys.executable, "label_server.py", str(tmp_path / "nowhere")]
+    result = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=120)
+    assert result.returncode == 2 and result.stderr == (
+        f"error: {tmp_path / 'nowhere' / 'config.json'} does not exist: give the --output-dir of "
+        "a run started with --teacher human\n")
+
+
+# A real browser: headless Chromium (Debian's chromium and chromium-driver) driven by selenium
+def chromium() -> tuple[str | None, str | None]:
+    """The paths of the browser and its driver, or None."""
+    binary = shutil.which("chromium") or shutil.which("chromium-browser")
+    return binary, shutil.which("chromedriver")
+
+
+NO_BROWSER = ("headless Chromium not found: install Debian's chromium and chromium-driver "
+              "(apt-get install chromium chromium-driver) and selenium (requirements.txt)")
+
+
+@pytest.fixture
+def browser():
+    binary, driver_path = chromium()
+    try:
+        from selenium import webdriver
+    except ImportError:
+        binary = None
+    if binary is None or driver_path is None:
+        pytest.skip(NO_BROWSER)
+    options = webdriver.ChromeOptions()
+    options.binary_location = binary
+    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                 "--window-size=1000,720"):
+        options.add_argument(flag)
+    driver = webdriver.Chrome(options=options, service=webdriver.ChromeService(driver_path))
+    yield driver
+    driver.quit()
+
+
+def wait_for(driver, condition, timeout: float = 60):
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    return WebDriverWait(driver, timeout).until(lambda _: condition())
+
+
+def text(driver, element_id: str) -> str:
+    return driver.find_element("id", element_id).text
+
+
+def pair_ready(driver) -> bool:
+    """The pair's clips are drawn and its buttons take answers."""
+    button = driver.find_element("css selector", "button[data-label=left]")
+    return button.is_displayed() and button.is_enabled()
+
+
+def press(driver, key: str):
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    ActionChains(driver).send_keys(key).perform()
+
+
+def click(driver, label: str):
+    driver.find_element("css selector", f"button[data-label={label}]").click()
+
+
+def test_a_person_labels_a_session_in_a_browser(tmp_path, browser):
+    from selenium.webdriver.common.keys import Keys
+
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
+    try:
+        browser.get(server.url)
+        wait_for(browser, lambda: pair_ready(browser))
+        assert text(browser, "task") == ENV_ID
+        assert text(browser, "progress") == "1 / 4"
+        time.sleep(0.5)  # a few frames into the loop
+        drawn = browser.execute_script(
+            "return [0, 1].map(s => document.getElementById('clip' + s).toDataURL())")
+        blank = browser.execute_script(
+            "const c = document.createElement('canvas'); c.width = 160; c.height = 120;"
+            "return c.toDataURL()")
+        assert blank not in drawn and drawn[0] != drawn[1]  # two different clips on screen
+        screenshot = tmp_path / "label_page.png"
+        browser.save_screenshot(str(screenshot))
+        if os.environ.get("LABEL_PAGE_SCREENSHOT"):  # e.g. docs/label_page.png
+            shutil.copy(screenshot, os.environ["LABEL_PAGE_SCREENSHOT"])
+
+        steps = [(lambda: press(browser, Keys.ARROW_LEFT), "2 / 4"),  # 0: left
+                 (lambda: click(browser, "equal"), "3 / 4"),  # 1: equal
+                 (lambda: press(browser, "s"), "4 / 4"),  # 2: skip
+                 (lambda: press(browser, "u"), "3 / 4"),  # undo 2
+                 (lambda: click(browser, "right"), "4 / 4"),  # 2: right
+                 (lambda: press(browser, "0"), "")]  # 3: skip; the session is done
+        for act, progress in steps:
+            act()
+            wait_for(browser, lambda: text(browser, "progress") == progress)
+            if progress:
+                wait_for(browser, lambda: pair_ready(browser))
+        wait_for(browser, lambda: browser.find_element("id", "waiting").is_displayed())
+        assert answers_file(run_dir) == {"order": [0, 1, 2, 3], "answers": {
+            "0": "left", "1": "equal", "2": "right", "3": "skip"}}
+        assert text(browser, "message") == ""
+    finally:
+        server.close()
+
+
+def test_the_page_moves_on_when_another_browser_answered_its_pair(tmp_path, browser):
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
+    try:
+        browser.get(server.url)
+        wait_for(browser, lambda: pair_ready(browser))
+        assert answer(server, 0, "equal")[0] == 200  # the other browser
+        press(browser, "1")  # this page still shows pair 0
+        wait_for(browser, lambda: text(browser, "message") == "pair 0 is answered already")
+        wait_for(browser, lambda: text(browser, "progress") == "2 / 4" and pair_ready(browser))
+        assert "pair 1" in text(browser, "where")
+        browser.refresh()  # a reload resumes at the first unanswered pair
+        wait_for(browser, lambda: pair_ready(browser))
+        assert "pair 1" in text(browser, "where")
+        assert answers_file(run_dir) == {"order": [0], "answers": {"0": "equal"}}
+    finally:
+        server.close()
