@@ -405,7 +405,8 @@ PAGE = """<!doctype html>
   #task { font-size: 1.5em; font-weight: 600; }
   #progress { font-size: 1.3em; font-variant-numeric: tabular-nums; }
   #where { color: #666; }
-  #clips { display: flex; gap: 28px; margin: 18px 0 6px; }
+  #question { font-size: 1.15em; margin: 16px 0 0; }
+  #clips { display: flex; gap: 28px; margin: 12px 0 6px; }
   figure { margin: 0; text-align: center; font-size: 1.1em; }
   canvas { width: 420px; background: #ddd; border: 2px solid #999; }
   #frame { color: #666; font-variant-numeric: tabular-nums; margin-bottom: 14px; }
@@ -419,6 +420,7 @@ PAGE = """<!doctype html>
 <header><span id="task"></span><span id="progress"></span><span id="where"></span></header>
 <p id="waiting" hidden>Waiting for the run's next feedback session (this page looks every 2 s).</p>
 <main id="pair" hidden>
+  <p id="question">Which clip does the task better?</p>
   <div id="clips">
     <figure><canvas id="clip0"></canvas><figcaption>Left</figcaption></figure>
     <figure><canvas id="clip1"></canvas><figcaption>Right</figcaption></figure>

@@ -315,7 +315,7 @@ def browser():
     options = webdriver.ChromeOptions()
     options.binary_location = binary
     for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
-                 "--window-size=1000,720"):
+                 "--window-size=1000,760"):
         options.add_argument(flag)
     driver = webdriver.Chrome(options=options, service=webdriver.ChromeService(driver_path))
     yield driver
@@ -386,6 +386,9 @@ def test_a_person_labels_a_session_in_a_browser(tmp_path, browser):
         assert answers_file(run_dir) == {"order": [0, 1, 2, 3], "answers": {
             "0": "left", "1": "equal", "2": "right", "3": "skip"}}
         assert text(browser, "message") == ""
+        write_session(run_dir, 1, 3)  # the run's next session: the waiting page finds it
+        wait_for(browser, lambda: text(browser, "progress") == "1 / 3" and pair_ready(browser))
+        assert "session 1" in text(browser, "where")
     finally:
         server.close()
 
