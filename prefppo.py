@@ -594,24 +594,24 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
     candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
     device = preferences["y"].device
-    sides = []
-    for i in (0, 1):
-        side = np.concatenate([candidates[f"obs{i}"], candidates[f"actions{i}"]], -1)
-        sides.append(torch.as_tensor(side, device=device))
+    inputs0 = np.concatenate([candidates["obs0"], candidates["actions0"]], -1)
+    inputs0 = torch.as_tensor(inputs0, device=device)
+    inputs1 = np.concatenate([candidates["obs1"], candidates["actions1"]], -1)
+    inputs1 = torch.as_tensor(inputs1, device=device)
     chosen = np.arange(size)  # uniform: `size` uniform pairs were drawn
     if sampler != "uniform":
         obs_dim = candidates["obs0"].shape[-1]
         with torch.no_grad():
-            probs = torch.sigmoid(reward_model(sides[1]).sum(2) - reward_model(sides[0]).sum(2))
+            probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))
         labelled = None
         if sampler.endswith("coverage"):
             labelled = coverage_features(preferences["inputs0"], preferences["inputs1"], obs_dim)
-        features = coverage_features(*sides, obs_dim)
+        features = coverage_features(inputs0, inputs1, obs_dim)
         probs = probs[..., 0].cpu().numpy()
         chosen = select(sampler, size, probs=probs, rng=rng, labeled_features=labelled,
                         features=features)
     segments = {key: value[chosen] for key, value in candidates.items()}
-    return segments, sides[0][chosen], sides[1][chosen]
+    return segments, inputs0[chosen], inputs1[chosen]
 
 
 def feedback_session(args, progress, size, episodes, preferences, reward_model, reward_optimizer,
@@ -952,11 +952,11 @@ def save_checkpoint(path: str, state: dict, step: int):
 def set_labels_aside(output_dir: str, progress):
     """--resume: label files of sessions after the checkpoint go to labels/before_resume_at_step_N
     (the run asks those queries again)."""
-    aside_dir = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
+    kept_dir = os.path.join(output_dir, "labels", f"before_resume_at_step_{progress.global_step}")
     paths = sorted(glob.glob(os.path.join(output_dir, "labels", "session_*.npz")))
     for path in paths[progress.sessions_done :]:
-        os.makedirs(aside_dir, exist_ok=True)
-        os.replace(path, os.path.join(aside_dir, os.path.basename(path)))
+        os.makedirs(kept_dir, exist_ok=True)
+        os.replace(path, os.path.join(kept_dir, os.path.basename(path)))
 
 
 def ask_person(args, progress, segments, episodes) -> tuple[np.ndarray, np.ndarray]:
@@ -1059,8 +1059,8 @@ def evaluation(args, progress, policy, reward_model, eval_env, writer, start_tim
         eval_env.name_prefix = f"step_{progress.global_step}"
     first = len(progress.eval_rows) * args.eval_episodes
     seeds = [episode_seed(args.seed, EVAL_STREAM, first + j) for j in range(args.eval_episodes)]
-    judged_model = reward_model if progress.pretrained and not args.ground_truth_reward else None
-    result = evaluate(policy, judged_model, eval_env, seeds, device)
+    learned_reward = reward_model if progress.pretrained and not args.ground_truth_reward else None
+    result = evaluate(policy, learned_reward, eval_env, seeds, device)
     if args.capture_video and eval_env.recording:  # write the video now, not at the next reset
         eval_env.stop_recording()
     progress.eval_rows.append({"step": progress.global_step, **result,
