@@ -14,6 +14,7 @@ import torch
 
 import pebble
 from tests.helpers import finished_counts, saved_labels, start_script
+from tests.test_label_server import browser, click, pair_ready, press, text, wait_for  # noqa: F401 (a fixture)
 
 ANSWERS = ["left", "right", "equal", "skip"]
 Y = {"left": 0.0, "right": 1.0, "equal": 0.5}
@@ -124,3 +125,50 @@ def test_a_run_stopped_while_it_waits_resumes_the_session_with_the_answers_given
     labels = saved_labels(out)
     np.testing.assert_array_equal(labels[0]["keep"], [True, True, False, True])
     np.testing.assert_array_equal(labels[0]["y"][labels[0]["keep"]], [1.0, 0.0, 0.5])
+
+
+def test_a_person_labels_a_short_run_in_a_real_browser(tmp_path, browser):
+    """End to end: pebble.py --teacher human waits; label_server.py's page, in headless Chromium, gets each session's
+    answers by keys and clicks (one undo); the run finishes having learned from exactly those answers."""
+    import label_server
+    from selenium.webdriver.common.keys import Keys
+
+    out = tmp_path / "run"
+    flags = ["--env-id", "tests.render_envs:Frames-v0", "--teacher", "human", "--total-timesteps", "300",
+             "--seed-steps", "30", "--unsup-steps", "60", "--segment-len", "5", "--max-feedback", "6",
+             "--feedback-per-session", "3", "--feedback-every", "90", "--hidden-dim", "16", "--num-layers", "1",
+             "--batch-size", "16", "--eval-every", "150", "--eval-episodes", "1", "--reward-epochs", "2"]
+    process = start_script("pebble.py", out, *flags)
+    server = None
+    try:
+        wait_for_file(out / "queries" / "session_0000.npz", process)
+        server = label_server.serve(str(out), "127.0.0.1", 0)
+        browser.get(server.url)
+        sessions = [[(lambda: press(browser, Keys.ARROW_LEFT), "2 / 3"),  # 0: left
+                     (lambda: click(browser, "right"), "3 / 3"),  # 1: right
+                     (lambda: press(browser, "u"), "2 / 3"),  # undo 1
+                     (lambda: press(browser, "s"), "3 / 3"),  # 1: skip
+                     (lambda: click(browser, "equal"), "")],  # 2: equal
+                    [(lambda: click(browser, "right"), "2 / 3"),
+                     (lambda: press(browser, Keys.ARROW_RIGHT), "3 / 3"),
+                     (lambda: click(browser, "left"), "")]]
+        for session, steps in enumerate(sessions):
+            wait_for(browser, lambda: text(browser, "progress") == "1 / 3" and pair_ready(browser))
+            assert f"session {session}" in text(browser, "where")
+            for act, progress in steps:
+                act()
+                wait_for(browser, lambda: text(browser, "progress") == progress)
+                if progress:
+                    wait_for(browser, lambda: pair_ready(browser))
+        stdout, stderr = process.communicate(timeout=300)
+    finally:
+        process.kill()
+        if server is not None:
+            server.close()
+    assert process.returncode == 0, stderr
+    labels = saved_labels(out)
+    assert len(labels) == 2 and finished_counts(stdout)["relabels"] == 2
+    np.testing.assert_array_equal(labels[0]["keep"], [True, False, True])
+    np.testing.assert_array_equal(labels[0]["y"][labels[0]["keep"]], [0.0, 0.5])
+    np.testing.assert_array_equal(labels[1]["keep"], [True, True, True])
+    np.testing.assert_array_equal(labels[1]["y"], [1.0, 1.0, 0.0])
