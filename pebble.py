@@ -181,6 +181,9 @@ class DMCEnv(gym.Env):
     def render(self):
         return self.dmc.physics.render(height=240, width=320, camera_id=0)
 
+    def close(self):  # frees the renderer's context (else dm_control complains at exit)
+        self.dmc.physics.free()
+
 
 class MetaWorldSeeding(gym.Wrapper):
     """Meta-World's reset ignores `seed`: here it seeds the generator of object and goal positions.
@@ -1154,7 +1157,6 @@ if __name__ == "__main__":
     signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
     start_time = time.time() - progress.wall_time
     last_print = start_time
-    policy = mean_policy(actor, device)
 
     # Main loop: Algorithm 3 (PEBBLE) with Algorithm 2 (unsupervised pre-training) first
     try:
@@ -1245,8 +1247,8 @@ if __name__ == "__main__":
                     log_losses(writer, losses, global_step)
 
             if evaluating:
-                evaluation(args, progress, policy, reward_model, eval_env, writer, start_time,
-                           device)
+                evaluation(args, progress, mean_policy(actor, device), reward_model, eval_env,
+                           writer, start_time, device)
             if time.time() - last_print > 10 or global_step == args.total_timesteps:
                 last_print = time.time()
                 print_progress(args, progress, start_time, writer)
@@ -1277,4 +1279,5 @@ if __name__ == "__main__":
     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                    "reward_model": reward_model.state_dict()}
     torch.save(final_model, os.path.join(args.output_dir, "final_model.pt"))
+    eval_env.close()
     writer.close()

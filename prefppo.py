@@ -194,6 +194,9 @@ class DMCEnv(gym.Env):
     def render(self):
         return self.dmc.physics.render(height=240, width=320, camera_id=0)
 
+    def close(self):  # frees the renderer's context (else dm_control complains at exit)
+        self.dmc.physics.free()
+
 
 class MetaWorldSeeding(gym.Wrapper):
     """Meta-World's reset ignores `seed`: here it seeds the generator of object and goal positions.
@@ -1236,7 +1239,6 @@ if __name__ == "__main__":
     signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
     start_time = time.time() - progress.wall_time
     last_print = start_time
-    policy = mean_policy(actor, obs_stats, device)
 
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (pre-training) for the first unsup_steps
     try:
@@ -1318,6 +1320,7 @@ if __name__ == "__main__":
 
             next_eval = min((len(progress.eval_rows) + 1) * args.eval_every, args.total_timesteps)
             if progress.global_step >= next_eval:
+                policy = mean_policy(actor, obs_stats, device)
                 evaluation(args, progress, policy, reward_model, eval_env, writer, start_time,
                            device)
             if time.time() - last_print > 10 or progress.global_step >= args.total_timesteps:
@@ -1355,4 +1358,5 @@ if __name__ == "__main__":
                    "reward_model": reward_model.state_dict(),
                    "obs_mean": torch.tensor(obs_stats.mean), "obs_var": torch.tensor(obs_stats.var)}
     torch.save(final_model, os.path.join(args.output_dir, "final_model.pt"))
+    eval_env.close()
     writer.close()

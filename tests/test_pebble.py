@@ -97,7 +97,7 @@ def test_sac_update_steps_each_network_on_its_own_loss_only():
 
 def test_choices_are_the_modules_names():
     annotations = pebble.Args.__annotations__
-    assert typing.get_args(annotations["teacher"]) == tuple(TEACHERS)
+    assert typing.get_args(annotations["teacher"]) == (*TEACHERS, "human")  # human: a person, label_server.py
     assert typing.get_args(annotations["sampler"]) == tuple(SAMPLERS)
     assert typing.get_args(annotations["schedule"]) == tuple(SCHEDULES)
 
@@ -476,7 +476,7 @@ BAD_INPUTS = [
     (["--env-id", "nowhere-walk"], "--env-id"),
     (["--env-id", "nomodule_xyz:Thing-v0"], "--env-id"),
     (["--teacher", "sleepy"], "invalid choice 'sleepy' for argument '--teacher'. Expected one of ('oracle', 'stoc', "
-                              "'mistake', 'skip', 'equal', 'myopic')"),
+                              "'mistake', 'skip', 'equal', 'myopic', 'human')"),
     (["--sampler", "best"], "invalid choice 'best' for argument '--sampler'. Expected one of ('uniform', "),
     (["--schedule", "random"], "invalid choice 'random' for argument '--schedule'. Expected one of ('uniform', "
                                "'decay', 'increase')"),
@@ -518,7 +518,7 @@ def test_existing_run_directory_is_not_overwritten(tmp_path):
 
 def test_help_lists_the_choices():
     result = run_script("pebble.py", "unused", "--help", timeout=120)
-    assert result.returncode == 0 and "{oracle,stoc,mistake,skip,equal,myopic}" in result.stdout
+    assert result.returncode == 0 and "{oracle,stoc,mistake,skip,equal,myopic,human}" in result.stdout
     assert "--cuda, --no-cuda" in result.stdout
 
 

@@ -441,7 +441,7 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
 BAD_INPUTS = [
     (["--env-id", "nowhere-walk"], "--env-id"),
     (["--teacher", "sleepy"], "invalid choice 'sleepy' for argument '--teacher'. Expected one of ('oracle', 'stoc', "
-                              "'mistake', 'skip', 'equal', 'myopic')."),
+                              "'mistake', 'skip', 'equal', 'myopic', 'human')."),
     (["--sampler", "best"], "invalid choice 'best' for argument '--sampler'. Expected one of ('uniform',"),
     (["--schedule", "random"], "invalid choice 'random' for argument '--schedule'"),
     (["--num-envs", "two"], "--num-envs"),
