@@ -436,8 +436,8 @@ class ReplayBuffer:
         idx = torch.randint(self.size, (batch_size,), device=self.device)
         return Batch(*(getattr(self, name)[idx] for name in Batch._fields))
 
-    # the filled rows only, copied (a slice would save the whole tensor)
     def state_dict(self) -> dict:
+        """The filled rows only, copied (a slice would save the whole tensor)."""
         rows = {name: getattr(self, name)[: self.size].clone() for name in Batch._fields}
         return rows | {"pos": self.pos}
 
@@ -465,8 +465,9 @@ def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor
     return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
 
-# of the kNN reward: Chan et al.'s parallel update (the reference's was wrong)
 class RunningMeanStd:
+    """Of the kNN reward: Chan et al.'s parallel update (the reference's was wrong)."""
+
     def __init__(self):
         self.mean = 0.0
         self.var = 1.0
@@ -580,19 +581,18 @@ def feedback_session(args, progress, size, episodes, preferences, reward_model, 
     """Algorithm 3's feedback session: SAMPLE() queries, SimTeacher's labels (saved to labels/ at
     once), D grows by the kept ones (in place), r_hat learns on D. Returns the number of labels
     in D."""
-    # the first: uniform (reference code)
+    # the first session: uniform (reference code)
     sampler = args.sampler if progress.pretrained else "uniform"
     segments, inputs0, inputs1 = sample_queries(sampler, size, episodes, reward_model, preferences,
                                                 args, rng)
-    # Appendix, adaptive thresholds: the mean true return of the recent training episodes (reference
-    # code)
+    # Appendix, adaptive thresholds from the mean true return of recent episodes (reference code)
     mean_return = float(np.mean(progress.recent_returns))
     teacher.set_thresholds(mean_return, args.segment_len, episode_len)
     if args.teacher == "human":
         y, keep = ask_person(args, progress, segments, episodes)
     else:
         y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
-    # the thresholds' unit: fit_teacher.py
+    # the thresholds' unit (fit_teacher.py reads it)
     threshold_scale = mean_return * args.segment_len / episode_len
     data = io.BytesIO()
     np.savez(data, step=progress.global_step, y=y, keep=keep, threshold_scale=threshold_scale,
@@ -668,7 +668,7 @@ def parse_args() -> Args:
 
 RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name",
                      "capture_video")
-# SimTeacher's: --teacher-*
+# SimTeacher's fields: the --teacher-* flags
 TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")
 
 
@@ -1059,7 +1059,7 @@ class Progress:
 
     global_step: int = 0
     episodes: int = 0  # training episodes before the running one (its number for episode_seed)
-    # its observations, actions, rewards
+    # the running episode's observations, actions and true rewards so far
     running_episode: tuple = field(default_factory=lambda: ([], [], []))
     # true returns of the last 10 training episodes
     recent_returns: list = field(default_factory=list)

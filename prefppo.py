@@ -622,19 +622,18 @@ def feedback_session(args, progress, size, episodes, preferences, reward_model, 
     """Algorithm 3's feedback session: SAMPLE() queries, SimTeacher's labels (saved to labels/ at
     once), D grows by the kept ones (in place), r_hat learns on D. Returns the number of labels
     in D."""
-    # the first: uniform (reference code)
+    # the first session: uniform (reference code)
     sampler = args.sampler if progress.pretrained else "uniform"
     segments, inputs0, inputs1 = sample_queries(sampler, size, episodes, reward_model, preferences,
                                                 args, rng)
-    # Appendix, adaptive thresholds: the mean true return of the recent training episodes (reference
-    # code)
+    # Appendix, adaptive thresholds from the mean true return of recent episodes (reference code)
     mean_return = float(np.mean(progress.recent_returns))
     teacher.set_thresholds(mean_return, args.segment_len, episode_len)
     if args.teacher == "human":
         y, keep = ask_person(args, progress, segments, episodes)
     else:
         y, keep = teacher.label(segments["rewards0"], segments["rewards1"])
-    # the thresholds' unit: fit_teacher.py
+    # the thresholds' unit (fit_teacher.py reads it)
     threshold_scale = mean_return * args.segment_len / episode_len
     data = io.BytesIO()
     np.savez(data, step=progress.global_step, y=y, keep=keep, threshold_scale=threshold_scale,
@@ -702,7 +701,7 @@ def parse_args() -> Args:
 
 RESUME_MAY_CHANGE = ("resume", "checkpoint_every", "cuda", "track", "wandb_project_name",
                      "capture_video", "compile")
-# SimTeacher's: --teacher-*
+# SimTeacher's fields: the --teacher-* flags
 TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")
 
 
