@@ -1103,7 +1103,8 @@ def step_envs(envs, actions: np.ndarray, raw_obs: np.ndarray, progress, episodes
               step: int) -> tuple:
     """One step of every env; an env whose episode ends hands it to the query pool and is reset with
     its next episode's seed. Returns the next observations, the observations the step reached (an
-    ended episode's real last state), true rewards, terminations and truncations."""
+    ended episode's real last state), true rewards, terminations and truncations. `step`: the
+    environment steps done once this one is (an ended episode's step in TensorBoard)."""
     next_raw_obs = raw_obs.copy()
     final_obs = raw_obs.copy()
     true_reward = np.zeros(len(envs))
@@ -1274,7 +1275,7 @@ if __name__ == "__main__":
                 env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses `action`
                 next_raw_obs, final_obs, true_reward, terminated, truncated = step_envs(
                     envs, env_action.cpu().numpy(), raw_obs, progress, episodes, writer, args,
-                    global_step + t * args.num_envs)
+                    global_step + (t + 1) * args.num_envs)
                 raw_obs_buf[t] = torch.as_tensor(raw_obs)
                 obs_buf[t] = obs
                 actions_buf[t] = action

@@ -52,7 +52,7 @@ class Grid:
     algorithms: tuple[str, ...] = ("pebble",)
     """pebble and/or prefppo"""
     implementations: tuple[str, ...] = ("ours",)
-    """ours and/or reference (the reference code, set up by benchmarks/reference/setup.sh; PEBBLE and SAC)"""
+    """ours and/or reference (the reference code, set up by benchmarks/reference/setup.sh; PEBBLE, SAC, PrefPPO)"""
     env_ids: tuple[str, ...] = ("walker-walk",)
     """tasks (any --env-id of the scripts)"""
     teachers: tuple[str, ...] = tuple(TEACHERS)
@@ -97,6 +97,7 @@ class Grid:
 # The README's CPU scale: 10 sessions of 100 (steps 10001, 19001, ..., 91001) spend 1000 labels within 100K steps
 CPU_PEBBLE = ("--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --batch-size 256 --eval-every 10000 "
               "--eval-episodes 10 --feedback-every 9000")
+CPU_PREFPPO = "--total-timesteps 1000000 --eval-every 50000 --eval-episodes 10"  # docs/results.md
 MINI_BPREF = Grid(
     env_ids=("walker-walk",), budgets=("300/30",), seeds=(1, 2, 3, 4, 5), root="runs/mini-bpref",
     # 40K steps, 128 x 2 networks, pre-training until 5K, 10 sessions of 30 queries every 3500 steps (5001 ... 36501),
@@ -124,11 +125,16 @@ PRESETS = {
         "SAC on the true reward (the same pre-training and critic reset) at the README's CPU scale, ours and the "
         "reference code's train_SAC.py, 3 seeds each",
         Grid(implementations=IMPLEMENTATIONS, preference_runs=False, root="runs/parity", flags=CPU_PEBBLE)),
+    "parity-prefppo": (
+        "PrefPPO (oracle, 1000 labels), walker-walk 1M steps, the paper's preset, ours and the reference code's "
+        "train_PrefPPO.py, 3 seeds each, compared on training episodes (the reference evaluates no policy)",
+        Grid(algorithms=("prefppo",), implementations=IMPLEMENTATIONS, teachers=("oracle",), budgets=("1000/100",),
+             ground_truth=False, root="runs/parity", flags=CPU_PREFPPO)),
     "learning-cpu-prefppo": (
         "README's CPU learning benchmark: PrefPPO (oracle, 1000 labels) and PPO on the true reward, walker-walk 1M "
         "steps, the paper's PrefPPO preset, 3 seeds",
         Grid(algorithms=("prefppo",), teachers=("oracle",), budgets=("1000/100",), root="runs/learning-cpu-prefppo",
-             flags="--total-timesteps 1000000 --eval-every 50000 --eval-episodes 10")),
+             flags=CPU_PREFPPO)),
 }
 
 
@@ -146,7 +152,7 @@ class Run:
         which the scripts accept as they equal the saved configuration. The reference takes the same flags through
         its runner, which never resumes (it writes no checkpoint.pt: a stopped run is started afresh)."""
         if self.implementation == "reference":
-            return [str(REFERENCE_RUNNER), *self.flags, "--output-dir", str(run_dir)]
+            return [str(REFERENCE_RUNNER), "--algorithm", self.algorithm, *self.flags, "--output-dir", str(run_dir)]
         # a resumed run takes its directory from --resume (the folder may have moved since)
         return [str(ROOT / f"{self.algorithm}.py"), *self.flags, "--resume" if resume else "--output-dir", str(run_dir)]
 
@@ -170,8 +176,8 @@ def check(grid: Grid) -> str | None:
         unknown = [value for value in given if value not in known]
         if unknown:
             return f"--{name} {unknown[0]!r} is not one of {', '.join(known)}"
-    if "reference" in grid.implementations and "prefppo" in grid.algorithms:
-        return "--implementations reference runs PEBBLE and SAC only (the reference's PrefPPO is not wired in yet)"
+    if "reference" in grid.implementations and "prefppo" in grid.algorithms and grid.ground_truth:
+        return "--implementations reference runs PrefPPO, not PPO on the true reward: add --no-ground-truth"
     if not (grid.ground_truth or grid.preference_runs):
         return "--no-ground-truth with --no-preference-runs leaves no run"
     for name in ("algorithms", "implementations", "env_ids", "teachers", "budgets", "samplers", "schedules", "seeds"):
@@ -250,16 +256,19 @@ def read_eval(run_dir: Path) -> list[dict]:
 
 def run_state(run_dir: Path) -> tuple[str, str]:
     """('finished' | 'resumable' | 'partial' | 'new', a few words). Finished: final_model.pt written and the last
-    evaluation at (prefppo: past) the configured total steps."""
+    evaluation at (prefppo: past) the configured total steps; the reference's PrefPPO (rows of training episodes,
+    the last before the last step): final_model.pt written."""
     if not run_dir.is_dir() or not any(run_dir.iterdir()):
         return "new", "not started"
     try:
-        total = json.loads((run_dir / "config.json").read_text())["total_timesteps"]
+        config = json.loads((run_dir / "config.json").read_text())
+        total = config["total_timesteps"]
     except (OSError, ValueError, KeyError):
-        total = None
+        config, total = {}, None
     rows = read_eval(run_dir)
     step = int(rows[-1]["step"]) if rows else 0
-    if total is not None and (run_dir / "final_model.pt").exists() and step >= total:
+    training = config.get("episode_returns") == "training"
+    if total is not None and (run_dir / "final_model.pt").exists() and (step >= total or training):
         return "finished", f"{step} steps"
     where = f"last evaluation at step {step} of {total}" if total is not None else "no config.json"
     if (run_dir / "checkpoint.pt").exists():

@@ -18,7 +18,7 @@ import shlex
 import sys
 import warnings
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -427,7 +427,9 @@ REFERENCE_PREFIX = "reference-"
 
 
 def parity_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
-    """(our setting, our finished runs, the reference's finished runs) for every setting both implementations ran."""
+    """(our setting, our finished runs, the reference's finished runs) for every setting both implementations ran.
+    Where the reference's rows are training episodes (its PrefPPO evaluates no policy), both arms' runs come back
+    with training-episode rows (training_rows), so that both are measured alike."""
     groups = defaultdict(list)
     for run in runs:
         if run.state == "finished":
@@ -436,8 +438,33 @@ def parity_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
     for setting in sorted(groups, key=sort_key):
         twin = (REFERENCE_PREFIX + setting[0], *setting[1:])
         if not setting[0].startswith(REFERENCE_PREFIX) and twin in groups:
-            pairs.append((setting, groups[setting], groups[twin]))
+            ours, reference = groups[setting], groups[twin]
+            if any(on_training_episodes(run) for run in reference):
+                ours = [replace(run, rows=training_rows(run)) for run in ours]
+                ours = [replace(run, score=run.rows[-1][run.metric]) for run in ours]
+            pairs.append((setting, ours, reference))
     return pairs
+
+
+def on_training_episodes(run: Run) -> bool:
+    return run.config.get("episode_returns") == "training"
+
+
+def training_rows(run: Run) -> list[dict]:
+    """Our run's training episodes as the reference PrefPPO's rows (benchmarks/reference/run.py): one per step at which
+    episodes ended (TensorBoard's charts/episodic_return), their mean true return; the last row keeps the run's wall
+    time and final reward correlation."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run.path), size_guidance={"scalars": 0})
+    events.Reload()  # a resumed run's repeated steps are dropped (purge_orphaned_data)
+    waves = defaultdict(list)
+    for event in events.Scalars("charts/episodic_return"):
+        waves[event.step].append(event.value)
+    rows = [{"step": step, run.metric: float(np.mean(values)), "wall_time": float("nan"),
+             "reward_correlation": float("nan")} for step, values in sorted(waves.items())]
+    rows[-1] |= {key: run.rows[-1][key] for key in ("wall_time", "reward_correlation")}
+    return rows
 
 
 def difference_ci(ours: np.ndarray, reference: np.ndarray, reps: int, seed: int) -> tuple[float, float, float]:
@@ -468,7 +495,8 @@ def parity_rows(runs: list[Run], reps: int, seed: int) -> list[dict]:
         arms = {"ours": ours, "reference": reference}
         finals = {arm: np.array([r.score for r in group]) for arm, group in arms.items()}
         iqm = aggregate({arm: scores[:, None] for arm, scores in finals.items()}, reps, seed)
-        row = {**dict(zip(SETTING, setting)), "metric": ours[0].metric}
+        row = {**dict(zip(SETTING, setting)), "metric": ours[0].metric,
+               "measured_on": "training episodes" if on_training_episodes(reference[0]) else "evaluations"}
         for arm, group in arms.items():
             correlations = [r.rows[-1].get("reward_correlation", float("nan")) for r in group]
             row |= {f"{arm}_runs": len(group), f"{arm}_seeds": " ".join(str(r.config["seed"]) for r in group),
@@ -542,6 +570,11 @@ def parity_markdown(rows: list[dict], figures: list[Path], target: Path, command
     for row, figure in zip(rows, figures):
         lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
                   f"{row['sampler']}, {row['schedule']}", "", f"**Verdict: {verdict(row)}.**", ""]
+        if row["measured_on"] == "training episodes":
+            lines += ["Measured on training episodes: the reference's PrefPPO evaluates no policy, so both arms' "
+                      "returns are those of their stochastic training episodes (gSDE noise included), a row per step "
+                      "at which a wave of episodes ended (every env ends one at the same step); final = the last "
+                      "wave, mean over evaluations = mean over the waves.", ""]
         lines += table(["", "seeds", "final (mean ± std)", "per seed", "mean over evaluations", "IQM [95% CI]",
                         "final reward correlation", "wall time per run (min)"],
                        [[arm, row[f"{arm}_seeds"], f"{row[f'{arm}_final_mean']:.1f} ± {row[f'{arm}_final_std']:.1f}",

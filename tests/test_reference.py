@@ -72,6 +72,7 @@ def test_our_flags_become_the_reference_settings_of_the_same_experiment():
                               batch_size=256, feedback_every=9000, max_feedback=1000, feedback_per_session=100,
                               teacher="mistake", sampler="disagreement", learning_rate=5e-4, segment_len=50,
                               reward_epochs=50)
+    assert reference_run.resolve(args) is None
     command = reference_run.reference_command(args)
     assert command[0] == "train_PEBBLE.py"
     got = settings(command)
@@ -95,6 +96,48 @@ def test_our_flags_become_the_reference_settings_of_the_same_experiment():
     sac = reference_run.reference_command(args)
     assert sac[0] == "train_SAC.py" and "max_feedback" not in settings(sac)
     assert settings(sac)["num_unsup_steps"] == "9000"  # the same pre-training as ours
+
+
+def test_prefppo_flags_become_the_reference_walker_script_flags(tmp_path):
+    args = reference_run.Args(output_dir="x", algorithm="prefppo", seed=2, total_timesteps=1000000)
+    assert reference_run.resolve(args) is None
+    command = reference_run.prefppo_command(args, tmp_path)
+    assert command[0] == "train_PrefPPO.py"
+    got = dict(zip(command[1::2], command[2::2]))
+    # BPref's scripts/walker_walk/1000/oracle/run_PrefPPO.sh, with our preset's 32000 steps between sessions
+    script = {"--env": "walker_walk", "--lr": "5e-05", "--batch-size": "64", "--n-envs": "32", "--ent-coef": "0.0",
+              "--n-steps": "500", "--num-layer": "3", "--hidden-dim": "256", "--clip-init": "0.4",
+              "--gae-lambda": "0.92", "--re-feed-type": "1", "--re-num-interaction": "32000", "--teacher-beta": "-1",
+              "--teacher-gamma": "1.0", "--teacher-eps-mistake": "0.0", "--teacher-eps-skip": "0.0",
+              "--teacher-eps-equal": "0.0", "--re-segment": "50",
+              "--unsuper-step": "32000", "--unsuper-n-epochs": "50", "--re-max-feed": "1000", "--re-batch": "100",
+              "--total-timesteps": "1000000", "--seed": "2", "--use-sde": "1", "--sde-freq": "4", "--n-epochs": "20",
+              "--re-update": "100", "--tensorboard-log": f"{tmp_path}/"}
+    assert got == script
+    for flags, error in (({"batch_size": 256}, "--batch-size is not a setting of prefppo"),
+                         ({"schedule": "decay"}, "--schedule: the reference's PrefPPO has the uniform schedule only"),
+                         ({"sampler": "coverage"}, "--sampler: the reference's PrefPPO has uniform, disagreement and "
+                                                   "entropy sampling only"),
+                         ({"ground_truth_reward": True}, "--ground-truth-reward: only with --algorithm pebble")):
+        wrong = reference_run.Args(output_dir="x", algorithm="prefppo", **flags)
+        assert reference_run.resolve(wrong).startswith(error)
+    assert reference_run.resolve(reference_run.Args(output_dir="x", num_envs=8)) == "--num-envs is not a setting " \
+                                                                                    "of pebble"
+    config = reference_run.our_config(args, command)
+    assert config["episode_returns"] == "training" and config["num_envs"] == 32 and "batch_size" not in config
+    assert report.setting_of(config)[0] == "reference-prefppo"
+
+
+def test_the_reference_prefppo_training_episodes_become_rows_per_wave(tmp_path):
+    # two envs in lockstep, 1000-step episodes: waves at global steps 2000 and 4000; a short last episode of env 1
+    for env, (returns, times, lengths) in enumerate(((( 10.0, 30.0), (5.0, 9.0), (1000, 1000)),
+                                                     ((20.0, 50.0, 7.0), (5.5, 9.5, 12.0), (1000, 1000, 500)))):
+        lines = ['#{"t_start": 0, "env_id": "dmc"}', "r,l,t"]
+        lines += [f"{r},{length},{t}" for r, t, length in zip(returns, times, lengths)]
+        (tmp_path / f"{env}.monitor.csv").write_text("\n".join(lines) + "\n")
+    rows = reference_run.training_rows(tmp_path)
+    assert [(r["step"], r["episode_return"], r["episode_return_std"], r["wall_time"]) for r in rows] == [
+        (2000, 15.0, 5.0, 5.5), (4000, 40.0, 10.0, 9.5), (5000, 7.0, 0.0, 12.0)]
 
 
 def test_the_reference_results_are_read_back_in_our_columns(tmp_path):
@@ -174,17 +217,27 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
     refused = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "custom", "--implementations",
                               "reference", "--algorithms", "prefppo", "--root", str(tmp_path / "h")],
                              capture_output=True, text=True, env=ENV, cwd=ROOT)
-    assert refused.returncode == 2 and "PEBBLE and SAC only" in refused.stderr
+    assert refused.returncode == 2 and "runs PrefPPO, not PPO on the true reward" in refused.stderr
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "parity-prefppo", "--root",
+                             str(tmp_path / "p"), "--dry-run"], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    lines = [shlex.split(line) for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS")]
+    printed = [line for line in lines if line[2] == str(RUNNER)]
+    assert len(printed) == 3 and len(lines) == 6
+    assert all(line[3:5] == ["--algorithm", "prefppo"] for line in printed)
+    assert printed[0][printed[0].index("--total-timesteps") + 1] == "1000000"
 
 
-def write_run(root, name, seed, curve, implementation="ours"):
+def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=(10000, 20000)):
     path = root / name
     path.mkdir(parents=True)
     config = {"env_id": "walker-walk", "seed": seed, "teacher": "oracle", "sampler": "disagreement",
               "schedule": "uniform", "max_feedback": 1000, "feedback_per_session": 100, "ground_truth_reward": False,
-              "total_timesteps": 20000, "implementation": implementation}
+              "total_timesteps": 20000, "implementation": implementation} | (extra or {})
     (path / "config.json").write_text(json.dumps(config))
-    rows = [{"step": 10000 * (i + 1), "episode_return": value, "wall_time": 60.0 * (i + 1),
+    if implementation == "ours":
+        steps = (steps[0], config["total_timesteps"])
+    rows = [{"step": steps[i], "episode_return": value, "wall_time": 60.0 * (i + 1),
              "reward_correlation": 0.5 if implementation == "ours" else "nan"} for i, value in enumerate(curve)]
     with open(path / "eval.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, pebble.EVAL_COLUMNS, restval="0")
@@ -278,3 +331,30 @@ def test_reward_learning_check_splits_the_sessions_and_judges_a_perfect_reward_p
     assert reward_learning.judged(lambda x: -x[:, 0], data) == pytest.approx((-1.0, 0.0))
     result = reward_learning.ours(data, seed=0)
     assert 1 <= result["epochs"] <= 50 and -1 <= result["correlation"] <= 1
+
+
+def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    root = tmp_path / "parity"
+    prefppo = {"num_envs": 2, "total_timesteps": 5000}
+    for seed, (first, last) in enumerate(((10.0, 30.0), (20.0, 50.0)), 1):
+        write_run(root, f"ours_{seed}", seed, [999.0, 999.0], extra=prefppo)  # evaluations: not compared
+        writer = SummaryWriter(str(root / f"ours_{seed}"))
+        for step, value in ((2000, first), (2000, first + 2), (4000, last), (4000, last + 2)):
+            writer.add_scalar("charts/episodic_return", value, step)
+        writer.close()
+        # the reference's rows: a wave each (run.py's training_rows), the last one before the last step
+        write_run(root, f"ref_{seed}", seed, [first + 1, last - 9], implementation="reference",
+                  extra=prefppo | {"episode_returns": "training"}, steps=(2000, 4000))
+    assert grid.run_state(root / "ref_1")[0] == "finished" and grid.run_state(root / "ours_1")[0] == "finished"
+    target = tmp_path / "parity.md"
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = target.read_text()
+    assert "## prefppo on walker-walk" in text and "Measured on training episodes" in text
+    assert "| ours | 1 2 | 41.0 ± 10.0 | 31 51 |" in text  # the waves' means at 4000: 31 and 51
+    assert "| reference | 1 2 | 31.0 ± 10.0 | 21 41 |" in text
+    assert "**Verdict: within noise: ours - reference = +10.0" in text

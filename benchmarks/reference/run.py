@@ -6,6 +6,7 @@ implementations alike (docs/parity.md):
         --feedback-per-session 100 --feedback-every 9000 --total-timesteps 100000 --hidden-dim 256 --num-layers 2 \\
         --batch-size 256 --output-dir runs/parity/reference__s3
     python benchmarks/reference/run.py ... --ground-truth-reward    # the reference's train_SAC.py
+    python benchmarks/reference/run.py --algorithm prefppo --total-timesteps 1000000 ...   # its train_PrefPPO.py
 
 The output directory gets config.json (pebble.py's fields, with "implementation": "reference" and the reference's
 command line), bpref/ (the reference's own files), eval.csv in pebble.py's columns (wall_time from this wrapper's
@@ -13,9 +14,17 @@ clock at each evaluation line; the reference records no std or overhead: nan) an
 reference's actor, critic and reward models as pebble.py's state dicts) and, in the last row, the final reward
 correlation measured by pebble.py's evaluate on those networks. The reference cannot resume: a run stopped part-way
 is started afresh by the grid.
+
+PrefPPO (--algorithm prefppo, prefppo.py's flags): the reference evaluates no policy and saves none, so its eval.csv
+rows are the true returns of its stochastic training episodes, from its Monitor files: one row per wave of episodes
+(its envs step in lockstep, so with fixed-length episodes every env ends one at the same step), mean and std over the
+wave, wall time from the Monitor's clock; config.json says "episode_returns": "training", and experiments/report.py
+then compares prefppo.py's training episodes (charts/episodic_return) in the same way. final_model.pt holds its
+reward models only.
 """
 
 import csv
+import importlib
 import json
 import math
 import os
@@ -28,19 +37,23 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import tyro
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pebble import DMC_PRESET, PRESETS, eval_csv, save_file  # noqa: E402
+from pebble import eval_csv, save_file  # noqa: E402
 from sim_teacher import make_teacher  # noqa: E402
 
 FEED_TYPES = {"uniform": 0, "disagreement": 1, "entropy": 2, "coverage": 3, "disagreement-coverage": 4,
               "entropy-coverage": 5}  # the reference's feed_type
 REWARD_SCHEDULES = {"uniform": (0, 1.0), "decay": (1, 2.0), "increase": (2, 0.5)}
 """schedule -> (the reference's reward_schedule, the factor its walker scripts apply to the per-session count)"""
+PEBBLE_ONLY = ("seed_steps", "batch_size")
+PREFPPO_ONLY = ("num_envs", "num_steps", "minibatch_size", "gae_lambda", "update_epochs", "unsup_update_epochs",
+                "clip_coef", "ent_coef", "use_sde", "sde_freq")
 
 
 @dataclass
@@ -50,6 +63,8 @@ class Args:
 
     output_dir: str
     """where the run's files go (must be empty or absent)"""
+    algorithm: Literal["pebble", "prefppo"] = "pebble"
+    """pebble: train_PEBBLE.py (train_SAC.py with --ground-truth-reward); prefppo: train_PrefPPO.py"""
     env_id: str = "walker-walk"
     """a DMC task, domain-task (the reference's Meta-World needs MuJoCo 2.0)"""
     seed: int = 1
@@ -72,18 +87,38 @@ class Args:
     """segment length (segment)"""
     total_timesteps: int | None = None
     """environment steps (num_train_steps = this + 1, so that the last evaluation happens)"""
-    seed_steps: int = 1000
-    """random-action steps (num_seed_steps)"""
-    unsup_steps: int = 9000
-    """unsupervised pre-training steps (num_unsup_steps)"""
+    seed_steps: int | None = None
+    """PEBBLE: random-action steps (num_seed_steps)"""
+    unsup_steps: int | None = None
+    """unsupervised pre-training steps (num_unsup_steps; PrefPPO: --unsuper-step)"""
     hidden_dim: int | None = None
     """actor and critic width"""
     num_layers: int | None = None
-    """actor and critic depth (hidden_depth)"""
+    """actor and critic depth (hidden_depth; PrefPPO: --num-layer)"""
     batch_size: int | None = None
-    """SAC batch"""
+    """PEBBLE: SAC batch"""
     learning_rate: float | None = None
-    """actor and critic learning rate"""
+    """actor and critic learning rate (PrefPPO: --lr)"""
+    num_envs: int | None = None
+    """PrefPPO: parallel environments (--n-envs)"""
+    num_steps: int | None = None
+    """PrefPPO: steps per environment per rollout (--n-steps)"""
+    minibatch_size: int | None = None
+    """PrefPPO: PPO minibatch (--batch-size)"""
+    gae_lambda: float | None = None
+    """PrefPPO: GAE lambda (--gae-lambda)"""
+    update_epochs: int | None = None
+    """PrefPPO: PPO epochs per rollout (--n-epochs)"""
+    unsup_update_epochs: int | None = None
+    """PrefPPO: PPO epochs per rollout in pre-training (--unsuper-n-epochs)"""
+    clip_coef: float | None = None
+    """PrefPPO: initial clip range, decayed linearly (--clip-init)"""
+    ent_coef: float | None = None
+    """PrefPPO: entropy coefficient (--ent-coef)"""
+    use_sde: bool | None = None
+    """PrefPPO: gSDE exploration (--use-sde)"""
+    sde_freq: int | None = None
+    """PrefPPO: steps between gSDE noise draws (--sde-freq)"""
     reward_epochs: int | None = None
     """most reward epochs per session (reward_update)"""
     eval_every: int = 10000
@@ -96,6 +131,49 @@ class Args:
     """run the reference on the GPU (device=cuda)"""
     reference_dir: str = str(ROOT / "reference")
     """where setup.sh put BPref/ and .venv/"""
+
+
+def resolve(args: Args) -> str | None:
+    """Every field left None from the algorithm's preset for the task and its script's defaults, as pebble.py and
+    prefppo.py resolve them; the first flag the algorithm has no setting for, as an error line, or None."""
+    module = importlib.import_module(args.algorithm)
+    other = PREFPPO_ONLY if args.algorithm == "pebble" else PEBBLE_ONLY
+    if given := [name for name in other if getattr(args, name) is not None]:
+        return f"--{given[0].replace('_', '-')} is not a setting of {args.algorithm}"
+    if args.algorithm == "prefppo" and args.ground_truth_reward:
+        return "--ground-truth-reward: only with --algorithm pebble (the reference's train_SAC.py)"
+    if args.algorithm == "prefppo" and args.schedule != "uniform":
+        return "--schedule: the reference's PrefPPO has the uniform schedule only"
+    if args.algorithm == "prefppo" and args.sampler not in ("uniform", "disagreement", "entropy"):
+        return "--sampler: the reference's PrefPPO has uniform, disagreement and entropy sampling only"
+    defaults = module.Args()
+    preset = module.PRESETS.get(args.env_id, module.DMC_PRESET)
+    for name in set(PEBBLE_ONLY + PREFPPO_ONLY + ("unsup_steps", "hidden_dim", "num_layers")) - set(other):
+        if getattr(args, name) is None:
+            setattr(args, name, preset.get(name, getattr(defaults, name)))
+    for key, value in preset.items():
+        if hasattr(args, key) and getattr(args, key) is None:
+            setattr(args, key, value)
+    return None
+
+
+def prefppo_command(args: Args, log_dir: Path) -> list[str]:
+    """train_PrefPPO.py and its flags for prefppo.py's (its walker script's flags: run_PrefPPO.sh)."""
+    domain, task = args.env_id.split("-", 1)
+    teacher = make_teacher(args.teacher)
+    flags = {"--env": f"{domain}_{task.replace('-', '_')}", "--seed": args.seed, "--tensorboard-log": f"{log_dir}/",
+             "--n-envs": args.num_envs, "--n-steps": args.num_steps, "--lr": args.learning_rate,
+             "--total-timesteps": args.total_timesteps, "--batch-size": args.minibatch_size,
+             "--ent-coef": args.ent_coef, "--hidden-dim": args.hidden_dim, "--num-layer": args.num_layers,
+             "--use-sde": int(args.use_sde), "--sde-freq": args.sde_freq, "--gae-lambda": args.gae_lambda,
+             "--clip-init": args.clip_coef, "--n-epochs": args.update_epochs, "--unsuper-step": args.unsup_steps,
+             "--unsuper-n-epochs": args.unsup_update_epochs, "--re-segment": args.segment_len,
+             "--re-num-interaction": args.feedback_every, "--re-batch": args.feedback_per_session,
+             "--re-update": args.reward_epochs, "--re-feed-type": FEED_TYPES[args.sampler],
+             "--re-max-feed": args.max_feedback, "--teacher-beta": -1 if math.isinf(teacher.beta) else teacher.beta,
+             "--teacher-gamma": teacher.gamma, "--teacher-eps-mistake": teacher.eps_mistake,
+             "--teacher-eps-skip": teacher.eps_skip, "--teacher-eps-equal": teacher.eps_equal}
+    return ["train_PrefPPO.py", *[str(item) for flag, value in flags.items() for item in (flag, value)]]
 
 
 def reference_command(args: Args) -> list[str]:
@@ -122,8 +200,11 @@ def reference_command(args: Args) -> list[str]:
 
 
 def our_config(args: Args, command: list[str]) -> dict:
-    """config.json as pebble.py would write it for these flags, marked as the reference's run."""
-    config = {key: value for key, value in asdict(args).items() if key != "reference_dir"}
+    """config.json as pebble.py (prefppo.py) would write it for these flags, marked as the reference's run."""
+    other = PREFPPO_ONLY if args.algorithm == "pebble" else PEBBLE_ONLY
+    config = {key: value for key, value in asdict(args).items() if key not in ("reference_dir", "algorithm", *other)}
+    if args.algorithm == "prefppo":
+        config["episode_returns"] = "training"
     teacher = make_teacher(args.teacher)
     config |= {f"teacher_{name}": getattr(teacher, name) for name in ("beta", "gamma", "eps_mistake", "eps_skip",
                                                                       "eps_equal")}
@@ -155,6 +236,27 @@ def converted_rows(bpref_dir: Path, wall_times: list[float]) -> list[dict]:
     return rows
 
 
+def training_rows(log_dir: Path) -> list[dict]:
+    """PrefPPO: the true returns of the reference's training episodes (its Monitor files, one per env) in pebble.py's
+    eval.csv columns, one row per step at which episodes ended: the envs step in lockstep, so an episode of env i
+    that ends after its n-th step ends at global step n x envs. wall_time: the Monitor's clock (seconds since the
+    envs were made)."""
+    waves = {}
+    monitors = sorted(log_dir.glob("*.monitor.csv"))
+    for monitor in monitors:
+        with open(monitor) as f:
+            episodes = list(csv.DictReader(line for line in f if not line.startswith("#")))
+        steps = 0
+        for episode in episodes:
+            steps += int(episode["l"])
+            waves.setdefault(steps * len(monitors), []).append((float(episode["r"]), float(episode["t"])))
+    return [{"step": step, "episode_return": float(np.mean([r for r, _ in wave])),
+             "episode_return_std": float(np.std([r for r, _ in wave])), "success_rate": math.nan,
+             "feedback": math.nan, "reward_correlation": math.nan,
+             "wall_time": round(max(t for _, t in wave), 1), "overhead_seconds": math.nan}
+            for step, wave in sorted(waves.items())]
+
+
 def write_eval(out: Path, rows: list[dict]):
     """eval.csv as pebble.py writes it (its columns, written whole and atomically)."""
     save_file(str(out / "eval.csv"), eval_csv(rows))
@@ -178,6 +280,15 @@ def final_model(bpref_dir: Path, step: int) -> dict:
     return model
 
 
+def prefppo_reward_model(log_dir: Path, total_timesteps: int) -> dict:
+    """The reference PrefPPO's final reward models (all it saves) as prefppo.py's final_model.pt key "reward_model"."""
+    import torch
+
+    members = sorted(log_dir.glob(f"reward_model_{total_timesteps}_*.pt"))
+    return {"reward_model": {f"members.{i}.0.{key}": value for i, path in enumerate(members)
+                             for key, value in torch.load(path, map_location="cpu", weights_only=True).items()}}
+
+
 def final_reward_correlation(model: dict, args: Args) -> float:
     """The Pearson correlation of the reference's final learned reward with the true one along --eval-episodes
     episodes of its final actor's mean action, measured by pebble.py's evaluate (the episodes of ours' first
@@ -197,9 +308,9 @@ def final_reward_correlation(model: dict, args: Args) -> float:
 
 
 def main(args: Args) -> int:
-    for key, value in PRESETS.get(args.env_id, DMC_PRESET).items():  # pebble.py's resolve(), for a DMC task
-        if getattr(args, key) is None:
-            setattr(args, key, value)
+    if error := resolve(args):
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     out, reference = Path(args.output_dir), Path(args.reference_dir)
     python, tree = reference / ".venv" / "bin" / "python", reference / "BPref"
     if not (python.exists() and (tree / "train_PEBBLE.py").exists()):
@@ -214,20 +325,26 @@ def main(args: Args) -> int:
         print(f"error: --output-dir {out} is not empty (the reference cannot resume)", file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
-    command = reference_command(args)
+    bpref = (out / "bpref").resolve()
+    if args.algorithm == "prefppo":
+        command = prefppo_command(args, bpref)
+    else:
+        command = reference_command(args) + [f"hydra.run.dir={bpref}"]
     (out / "config.json").write_text(json.dumps(our_config(args, command), indent=2))
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONWARNINGS="ignore")
     start, wall_times = time.time(), []
-    print(f"reference: {python} {' '.join(command)} hydra.run.dir={out / 'bpref'}", flush=True)
-    process = subprocess.Popen([str(python), *command, f"hydra.run.dir={(out / 'bpref').resolve()}"], cwd=tree,
-                               env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    print(f"reference: {python} {' '.join(command)}", flush=True)
+    process = subprocess.Popen([str(python), *command], cwd=tree, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
     signal.signal(signal.SIGTERM, lambda signum, frame: process.terminate())  # a grid's stop: end the reference too
     try:
         for line in process.stdout:
             print(line, end="", flush=True)
-            if line.startswith("| eval"):
+            if line.startswith("| eval"):  # PEBBLE and SAC: an evaluation
                 wall_times.append(round(time.time() - start, 1))
-                write_eval(out, converted_rows(out / "bpref", wall_times))
+                write_eval(out, converted_rows(bpref, wall_times))
+            if "total_timesteps" in line:  # PrefPPO: the end of a rollout's update
+                write_eval(out, training_rows(next(bpref.glob("*/*/*"), bpref)))
         code = process.wait()
     except KeyboardInterrupt:
         process.terminate()
@@ -240,9 +357,18 @@ def main(args: Args) -> int:
         return 1
     import torch
 
-    model = final_model(out / "bpref", args.total_timesteps + 1)
+    if args.algorithm == "prefppo":
+        log_dir = next(bpref.glob("*/*/*"))  # the reference names it from every setting
+        rows = training_rows(log_dir)
+        write_eval(out, rows)
+        model = prefppo_reward_model(log_dir, args.total_timesteps)
+        torch.save(model, out / "final_model.pt")
+        print(f"done: {len(rows)} waves of training episodes in {(time.time() - start) / 60:.1f} min; outputs in "
+              f"{out}")
+        return 0
+    model = final_model(bpref, args.total_timesteps + 1)
     if "reward_model" in model:
-        rows = converted_rows(out / "bpref", wall_times)
+        rows = converted_rows(bpref, wall_times)
         rows[-1]["reward_correlation"] = final_reward_correlation(model, args)
         write_eval(out, rows)
         print(f"final reward correlation (pebble.py's evaluate, reference's networks): "
