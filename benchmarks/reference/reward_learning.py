@@ -5,6 +5,10 @@ the learned per-step reward with the true one, and the share of later pairs orde
 Several initialisation seeds a side; a table on stdout.
 
     python benchmarks/reference/reward_learning.py runs/parity/ours/pebble__walker-walk__oracle__..._s1 --sessions 5
+
+--normalized-inputs adds ours on observations normalised as the reference's PrefPPO fed them to its reward network
+(VecNormalize: centred, unit variance, clipped to +-10; here with the mean and variance of the training segments'
+states), to measure that conditioning difference (docs/differences.md, item 17) on the same labels.
 """
 
 import argparse
@@ -31,7 +35,7 @@ def labelled(run_dir: str, sessions: int) -> dict:
         return np.concatenate([np.concatenate([s[f"obs{side}"], s[f"actions{side}"]], -1) for s in part])
 
     train, later = saved[:sessions], saved[sessions:]
-    return {"train0": both(train, 0), "train1": both(train, 1),
+    return {"obs_dim": saved[0]["obs0"].shape[-1], "train0": both(train, 0), "train1": both(train, 1),
             "y": np.concatenate([s["y"] for s in train]).astype(np.float32),
             "later0": both(later, 0), "later1": both(later, 1),
             "later_y": np.concatenate([s["y"] for s in later]),
@@ -47,6 +51,18 @@ def judged(reward_fn, data: dict) -> tuple[float, float]:
     returns = learned.reshape(2, -1, steps.shape[1]).sum(-1)
     agreement = float(np.mean((returns[1] > returns[0]) == (data["later_y"] > 0.5)))
     return correlation, agreement
+
+
+def normalized(data: dict) -> dict:
+    """The data with every observation as VecNormalize gives it (clip 10, epsilon 1e-8), actions as they are."""
+    obs_dim = data["obs_dim"]
+    states = np.concatenate([data["train0"], data["train1"]])[..., :obs_dim].reshape(-1, obs_dim)
+    mean, var = states.mean(0), states.var(0)
+    result = dict(data)
+    for key in ("train0", "train1", "later0", "later1"):
+        obs = np.clip((data[key][..., :obs_dim] - mean) / np.sqrt(var + 1e-8), -10, 10)
+        result[key] = np.concatenate([obs, data[key][..., obs_dim:]], -1).astype(np.float32)
+    return result
 
 
 def ours(data: dict, seed: int) -> dict:
@@ -93,6 +109,8 @@ def main():
     parser.add_argument("--sessions", type=int, default=5, help="sessions to train on; the later ones judge")
     parser.add_argument("--seeds", type=int, default=3, help="initialisation seeds a side")
     parser.add_argument("--reference-dir", default=str(ROOT / "reference"), help="where setup.sh put the reference")
+    parser.add_argument("--normalized-inputs", action="store_true",
+                        help="also ours on normalised observations (the reference PrefPPO's reward inputs)")
     parser.add_argument("--side", choices=["both", "reference"], default="both", help=argparse.SUPPRESS)
     args = parser.parse_args()
     data = labelled(args.run, args.sessions)
@@ -107,6 +125,8 @@ def main():
                            text=True, check=True)
     rows = {"ours": [ours(data, seed) for seed in range(args.seeds)],
             "reference": [json.loads(line) for line in other.stdout.splitlines() if line.startswith("{")]}
+    if args.normalized_inputs:
+        rows["ours, normalised inputs"] = [ours(normalized(data), seed) for seed in range(args.seeds)]
     print(f"{len(data['y'])} labels to train on, {len(data['later_y'])} later pairs to judge on ({args.run})")
     print("| implementation | seed | epochs | training accuracy | correlation with the true reward | later pairs "
           "in the teacher's order |")
