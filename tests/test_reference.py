@@ -194,6 +194,15 @@ def test_runner_without_the_reference_code_is_one_error_line(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def dry_run(preset: str, root) -> tuple[list[list[str]], list[list[str]]]:
+    """The command lines a grid preset's --dry-run prints: all of them, and the reference's."""
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), preset, "--root", str(root),
+                             "--dry-run"], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    lines = [shlex.split(line) for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS")]
+    return lines, [line for line in lines if line[2] == str(RUNNER)]
+
+
 def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path):
     spec = grid.Grid(implementations=("ours", "reference"), teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2),
                      flags="--total-timesteps 100000 --hidden-dim 256")
@@ -207,22 +216,14 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
     command = reference["reference__pebble__walker-walk__oracle__fb1000-100__disagreement__uniform__s2"].command(
         tmp_path / "r", resume=True)
     assert command[0] == str(RUNNER) and command[-2:] == ["--output-dir", str(tmp_path / "r")]  # never --resume
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "parity-pebble", "--root",
-                             str(tmp_path / "g"), "--dry-run"], capture_output=True, text=True, env=ENV, cwd=ROOT)
-    assert result.returncode == 0, result.stderr
-    lines = [shlex.split(line) for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS")]
-    printed = [line for line in lines if line[2] == str(RUNNER)]
+    lines, printed = dry_run("parity-pebble", tmp_path / "g")
     assert len(printed) == 5 and len(lines) == 10
     assert printed[0][printed[0].index("--feedback-every") + 1] == "9000"
     refused = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "custom", "--implementations",
                               "reference", "--algorithms", "prefppo", "--root", str(tmp_path / "h")],
                              capture_output=True, text=True, env=ENV, cwd=ROOT)
     assert refused.returncode == 2 and "runs PrefPPO, not PPO on the true reward" in refused.stderr
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "parity-prefppo", "--root",
-                             str(tmp_path / "p"), "--dry-run"], capture_output=True, text=True, env=ENV, cwd=ROOT)
-    assert result.returncode == 0, result.stderr
-    lines = [shlex.split(line) for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS")]
-    printed = [line for line in lines if line[2] == str(RUNNER)]
+    lines, printed = dry_run("parity-prefppo", tmp_path / "p")
     assert len(printed) == 3 and len(lines) == 6
     assert all(line[3:5] == ["--algorithm", "prefppo"] for line in printed)
     assert printed[0][printed[0].index("--total-timesteps") + 1] == "1000000"
