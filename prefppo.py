@@ -136,6 +136,9 @@ class Args:
     """most epochs of reward learning per session (stops early at 97% accuracy)"""
     label_smoothing: float = 0.0
     """soft labels (1 - s) * y + s / 2 (appendix uses s = 0.1 as a regulariser)"""
+    reward_input_norm: bool = False
+    """if toggled, the reward model sees observations standardised by D's states, clipped to +-10
+    (reference code: VecNormalize'd observations; docs/differences.md item 17)"""
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
     query_recent_episodes: int = 0
@@ -375,16 +378,32 @@ def reset_value_head(critic: nn.Sequential):
 
 class RewardEnsemble(nn.Module):
     """Appendix "Reward model": members of 3 x 256 LeakyReLU layers with a tanh-bounded output;
-    (..., obs+action) -> each member's reward (members, ..., 1)."""
+    (..., obs+action) -> each member's reward (members, ..., 1). Its inputs pass normalize(): the
+    identity, or with --reward-input-norm the observations standardised and clipped."""
 
     def __init__(self, obs_dim, action_dim, size):
         super().__init__()
         self.members = nn.ModuleList(
             nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh())
             for _ in range(size))
+        self.register_buffer("input_mean", torch.zeros(obs_dim + action_dim))
+        self.register_buffer("input_std", torch.ones(obs_dim + action_dim))
+        self.register_buffer("input_clip", torch.tensor(math.inf))
+
+    def normalize(self, obs_action):
+        centred = (obs_action - self.input_mean) / self.input_std
+        return centred.clamp(-self.input_clip, self.input_clip)
+
+    def set_input_stats(self, states: torch.Tensor):
+        """--reward-input-norm: standardise observations by these states (rows), clip to +-10."""
+        obs_dim = states.shape[-1]
+        self.input_mean[:obs_dim] = states.mean(0)
+        self.input_std[:obs_dim] = (states.var(0, unbiased=False) + 1e-8).sqrt()
+        self.input_clip.fill_(10.0)
 
     def forward(self, obs_action):
-        return torch.stack([member(obs_action) for member in self.members])
+        inputs = self.normalize(obs_action)
+        return torch.stack([member(inputs) for member in self.members])
 
 
 # Algorithm: the math a reader must trust (each unit-tested), the kNN reward, reward learning
@@ -562,8 +581,8 @@ def preference_accuracy(segment_returns, y: torch.Tensor) -> tuple[torch.Tensor,
 def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
     """Algorithm 3, reward learning: up to --reward-epochs passes over D, one shuffle per member,
     until 97% accuracy."""
-    inputs0 = preferences["inputs0"]
-    inputs1 = preferences["inputs1"]
+    inputs0 = reward_model.normalize(preferences["inputs0"])
+    inputs1 = reward_model.normalize(preferences["inputs1"])
     y = preferences["y"]
     for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
@@ -657,6 +676,10 @@ def feedback_session(args, progress, size, episodes, preferences, reward_model, 
         print(f"step {progress.global_step}: all {size} queries skipped, the reward model stays as "
               "it is")
         return 0
+    if args.reward_input_norm:  # statistics of D's states, fixed until the next session
+        states = torch.cat([preferences["inputs0"], preferences["inputs1"]], 1)
+        obs_dim = segments["obs0"].shape[-1]
+        reward_model.set_input_stats(states[..., :obs_dim].flatten(0, 1))
     loss, accuracy = train_reward(reward_model, reward_optimizer, preferences, args)
     writer.add_scalar("reward/loss", loss, progress.global_step)
     writer.add_scalar("reward/accuracy", accuracy, progress.global_step)

@@ -69,3 +69,17 @@ def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
         assert process.poll() is None, f"the run ended before writing {path}: {process.communicate()}"
         assert time.time() < deadline, f"{path} not written within {timeout} s"
         time.sleep(0.02)
+
+
+def assert_inputs_standardised_by_labelled_states(out: Path, obs_dim: int):
+    """--reward-input-norm: the final reward model standardises observations by the mean and std of every state of
+    the kept labelled segments (D after the last session), clips at 10, and leaves actions as they are."""
+    import torch
+
+    labels = saved_labels(out)
+    states = np.concatenate([s[f"obs{side}"][s["keep"]] for s in labels for side in (0, 1)]).reshape(-1, obs_dim)
+    saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]
+    np.testing.assert_allclose(saved["input_mean"][:obs_dim].numpy(), states.mean(0), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(saved["input_std"][:obs_dim].numpy(), states.std(0), rtol=1e-4, atol=1e-5)
+    assert not saved["input_mean"][obs_dim:].any() and (saved["input_std"][obs_dim:] == 1).all()
+    assert saved["input_clip"].item() == 10.0

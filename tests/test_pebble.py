@@ -16,8 +16,8 @@ import torch
 import pebble
 from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes, session_steps
 from sim_teacher import TEACHERS, make_teacher
-from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
-                           session_lines, start_script)
+from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_rejected, eval_curve, eval_rows,
+                           finished_counts, run_script, saved_labels, session_lines, start_script)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
         "--reward-batch-size", "32", "--eval-episodes", "1"]
@@ -302,6 +302,19 @@ def test_accuracy_does_not_count_equal_labels():
     assert (int(correct), int(counted)) == (1, 2)  # the old code would say 3 of 4
 
 
+def test_reward_inputs_pass_unchanged_unless_normalised_then_standardised_and_clipped():
+    torch.manual_seed(0)
+    model = pebble.RewardEnsemble(obs_dim=2, action_dim=1, size=2)
+    far = torch.tensor([[1e3, -40.0, 0.5]])
+    assert torch.equal(model.normalize(far), far)  # the default: raw inputs, nothing clipped
+    states = torch.tensor([[1.0, 10.0], [3.0, 30.0]])  # mean (2, 20), std (1, 10)
+    model.set_input_stats(states)
+    x = torch.tensor([[2.0, 40.0, 0.5], [1e3, 20.0, -0.7]])
+    torch.testing.assert_close(model.normalize(x), torch.tensor([[0.0, 2.0, 0.5], [10.0, 0.0, -0.7]]))
+    by_hand = torch.stack([member(model.normalize(x)) for member in model.members])
+    torch.testing.assert_close(model(x), by_hand)
+
+
 def test_train_reward_learns_a_separable_preference():
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
@@ -317,6 +330,24 @@ def test_train_reward_learns_a_separable_preference():
         held_out = torch.tensor(rng.normal(size=(200, 1, 4)), dtype=torch.float32)
         learned = model(held_out).mean(0)[:, 0, 0]
     assert np.corrcoef(learned.numpy(), held_out[:, 0, 0].numpy())[0, 1] > 0.8
+
+
+def test_train_reward_feeds_the_members_the_normalised_inputs_the_model_predicts_on():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    scale = torch.tensor([50.0, 50.0, 1.0, 1.0])  # observations far from unit scale, actions in [-1, 1]
+    inputs0, inputs1 = (torch.tensor(rng.normal(size=(128, 5, 4)), dtype=torch.float32) * scale + 200 for _ in "01")
+    y = (inputs1[..., 0].sum(1) > inputs0[..., 0].sum(1)).float()  # true reward: the first feature
+    model = pebble.RewardEnsemble(obs_dim=2, action_dim=2, size=3)
+    model.set_input_stats(torch.cat([inputs0, inputs1], 1)[..., :2].flatten(0, 1))
+    seen = []
+    model.members[0].register_forward_hook(lambda module, args, output: seen.append(args[0].abs().max().item()))
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    preferences = {"inputs0": inputs0, "inputs1": inputs1, "y": y}
+    _, accuracy = pebble.train_reward(model, optimizer, preferences, pebble.Args(reward_batch_size=64,
+                                                                                reward_epochs=30))
+    assert seen and max(seen) <= 10  # raw inputs reach ~400
+    assert accuracy > 0.75  # chance: 0.5
 
 
 def test_resolved_configuration_records_every_field_of_the_teacher():
@@ -443,6 +474,14 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
     assert counts["critic_resets"] == 1 and counts["relabels"] == 0
     assert not session_lines(result.stdout) and not saved_labels(out)
     assert int(eval_rows(out)[-1]["feedback"]) == 0
+
+
+def test_reward_input_norm_standardises_by_the_labelled_states(tmp_path):
+    out = tmp_path / "norm"
+    result = run_pebble(out, *PENDULUM, "--reward-input-norm")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(session_lines(result.stdout)) == 3
+    assert_inputs_standardised_by_labelled_states(out, obs_dim=3)
 
 
 def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rate(tmp_path):

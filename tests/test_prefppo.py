@@ -13,8 +13,8 @@ import torch.nn.functional as F
 import prefppo
 from samplers import planned_labels, schedule_sizes
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
-from tests.helpers import (assert_rejected, eval_curve, eval_rows, finished_counts, run_script, saved_labels,
-                           session_lines, start_script)
+from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_rejected, eval_curve, eval_rows,
+                           finished_counts, run_script, saved_labels, session_lines, start_script)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
         "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"]
@@ -103,6 +103,19 @@ def test_rollout_reward_is_the_ensemble_mean_of_the_stored_raw_observation_and_a
     by_hand = torch.stack([m(torch.cat([raw_obs[t, n], actions[t, n]])) for m in model.members]).mean()
     assert rewards[t, n].item() == pytest.approx(by_hand.item(), rel=1e-6)
     assert rewards.abs().max() <= 1  # tanh-bounded
+
+
+def test_reward_inputs_pass_unchanged_unless_normalised_then_standardised_and_clipped():
+    torch.manual_seed(0)
+    model = prefppo.RewardEnsemble(obs_dim=2, action_dim=1, size=2)
+    far = torch.tensor([[1e3, -40.0, 0.5]])
+    assert torch.equal(model.normalize(far), far)  # the default: raw inputs, nothing clipped
+    states = torch.tensor([[1.0, 10.0], [3.0, 30.0]])  # mean (2, 20), std (1, 10)
+    model.set_input_stats(states)
+    x = torch.tensor([[2.0, 40.0, 0.5], [1e3, 20.0, -0.7]])
+    torch.testing.assert_close(model.normalize(x), torch.tensor([[0.0, 2.0, 0.5], [10.0, 0.0, -0.7]]))
+    by_hand = torch.stack([member(model.normalize(x)) for member in model.members])
+    torch.testing.assert_close(model(x), by_hand)
 
 
 def test_running_mean_std_matches_numpy():
@@ -407,6 +420,14 @@ def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, s
         assert (~keep).any() and np.isnan(y[~keep]).all()
     if teacher == "equal":
         assert (y == 0.5).any()
+
+
+def test_reward_input_norm_standardises_by_the_labelled_states(tmp_path):
+    out = tmp_path / "norm"
+    result = run_prefppo(out, *PENDULUM, "--reward-input-norm")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(session_lines(result.stdout)) == 3
+    assert_inputs_standardised_by_labelled_states(out, obs_dim=3)
 
 
 def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):

@@ -275,18 +275,30 @@ def final_model(bpref_dir: Path, step: int) -> dict:
                         for key, value in load(f"critic_{step}.pt").items()}}
     members = sorted(bpref_dir.glob(f"reward_model_{step}_*.pt"))
     if members:
-        model["reward_model"] = {f"members.{i}.0.{key}": value for i, path in enumerate(members)
-                                 for key, value in load(path.name).items()}
+        model["reward_model"] = raw_inputs({f"members.{i}.0.{key}": value for i, path in enumerate(members)
+                                            for key, value in load(path.name).items()})
     return model
 
 
+def raw_inputs(reward_model: dict) -> dict:
+    """The reward ensemble's state with the identity as its input normaliser (our RewardEnsemble's buffers without
+    --reward-input-norm; the reference's networks take their inputs as they come)."""
+    import torch
+
+    in_dim = reward_model["members.0.0.0.weight"].shape[1]
+    return reward_model | {"input_mean": torch.zeros(in_dim), "input_std": torch.ones(in_dim),
+                           "input_clip": torch.tensor(math.inf)}
+
+
 def prefppo_reward_model(log_dir: Path, total_timesteps: int) -> dict:
-    """The reference PrefPPO's final reward models (all it saves) as prefppo.py's final_model.pt key "reward_model"."""
+    """The reference PrefPPO's final reward models (all it saves) as prefppo.py's final_model.pt key "reward_model"
+    (its inputs were VecNormalize'd observations, whose statistics it does not save: kept for the record)."""
     import torch
 
     members = sorted(log_dir.glob(f"reward_model_{total_timesteps}_*.pt"))
-    return {"reward_model": {f"members.{i}.0.{key}": value for i, path in enumerate(members)
-                             for key, value in torch.load(path, map_location="cpu", weights_only=True).items()}}
+    return {"reward_model": raw_inputs({f"members.{i}.0.{key}": value for i, path in enumerate(members)
+                                        for key, value in torch.load(path, map_location="cpu",
+                                                                     weights_only=True).items()})}
 
 
 def final_reward_correlation(model: dict, args: Args) -> float:
