@@ -350,7 +350,9 @@ def load_final_model(run: Run) -> tuple:
     actor = build(module.Actor, obs_dim, action_dim, config)
     actor.load_state_dict(saved["actor"])
     reward_model = build(module.RewardEnsemble, obs_dim, action_dim, config, size=config["reward_ensemble_size"])
-    reward_model.load_state_dict(saved["reward_model"])
+    # a run from before --reward-input-norm saved no input normaliser: its inputs were raw (the identity)
+    raw_inputs = {key: value for key, value in reward_model.state_dict().items() if key.startswith("input_")}
+    reward_model.load_state_dict(raw_inputs | saved["reward_model"])
     obs_stats = None
     if "obs_mean" in saved:  # prefppo: the policy sees normalised observations, the reward model raw ones
         obs_stats = module.RunningMeanStd(obs_dim)

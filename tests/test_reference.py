@@ -378,3 +378,18 @@ def test_reward_inputs_normalised_as_the_reference_prefppo_saw_them():
     np.testing.assert_array_equal(result["train0"][..., 2:], data["train0"][..., 2:].astype(np.float32))  # actions
     np.testing.assert_allclose(result["later0"], result["train0"])  # the training states' statistics, for all
     assert result["train0"].dtype == np.float32
+
+
+def test_report_loads_a_final_model_saved_before_the_input_normaliser_as_raw_inputs(tmp_path):
+    import torch
+
+    config = {"env_id": "Pendulum-v1", "hidden_dim": 8, "num_layers": 1, "reward_ensemble_size": 2, "seed": 1,
+              "eval_episodes": 1}
+    reward = pebble.RewardEnsemble(3, 1, 2)
+    old = {key: value for key, value in reward.state_dict().items() if not key.startswith("input_")}
+    torch.save({"actor": pebble.Actor(3, 1, 8, 1).state_dict(), "reward_model": old}, tmp_path / "final_model.pt")
+    run = report.Run(tmp_path, config, [], "finished", "", ("pebble",), "episode_return")
+    _, env, _, loaded, _ = report.load_final_model(run)
+    env.close()
+    x = torch.randn(4, 4) * 50
+    assert loaded.input_clip.item() == math.inf and torch.equal(loaded(x), reward(x))
