@@ -71,11 +71,15 @@ def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
         time.sleep(0.02)
 
 
-def assert_inputs_standardised_by_labelled_states(out: Path, obs_dim: int):
-    """--reward-input-norm: the final reward model standardises observations by the mean and std of every state of
-    the kept labelled segments (D after the last session), clips at 10, and leaves actions as they are."""
+def assert_inputs_standardised_by_labelled_states(script: str, out: Path, *flags: str, obs_dim: int):
+    """A run with --reward-input-norm and 3 sessions: its final reward model standardises observations by the mean
+    and std of every state of the kept labelled segments (D after the last session), clips at 10, and leaves actions
+    as they are."""
     import torch
 
+    result = run_script(script, out, *flags, "--reward-input-norm")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(session_lines(result.stdout)) == 3
     labels = saved_labels(out)
     states = np.concatenate([s[f"obs{side}"][s["keep"]] for s in labels for side in (0, 1)]).reshape(-1, obs_dim)
     saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]

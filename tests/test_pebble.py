@@ -2,6 +2,7 @@
 (pre-training updates, feedback sessions, reward learning, relabelling, critic reset, evaluation),
 and bad input that must end with one line and a non-zero exit before any training."""
 
+import importlib
 import json
 import math
 import signal
@@ -302,9 +303,10 @@ def test_accuracy_does_not_count_equal_labels():
     assert (int(correct), int(counted)) == (1, 2)  # the old code would say 3 of 4
 
 
-def test_reward_inputs_pass_unchanged_unless_normalised_then_standardised_and_clipped():
+@pytest.mark.parametrize("script", ["pebble", "prefppo"])  # the same class in both
+def test_reward_inputs_pass_unchanged_unless_normalised_then_standardised_and_clipped(script):
     torch.manual_seed(0)
-    model = pebble.RewardEnsemble(obs_dim=2, action_dim=1, size=2)
+    model = importlib.import_module(script).RewardEnsemble(obs_dim=2, action_dim=1, size=2)
     far = torch.tensor([[1e3, -40.0, 0.5]])
     assert torch.equal(model.normalize(far), far)  # the default: raw inputs, nothing clipped
     states = torch.tensor([[1.0, 10.0], [3.0, 30.0]])  # mean (2, 20), std (1, 10)
@@ -477,11 +479,7 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
 
 
 def test_reward_input_norm_standardises_by_the_labelled_states(tmp_path):
-    out = tmp_path / "norm"
-    result = run_pebble(out, *PENDULUM, "--reward-input-norm")
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert len(session_lines(result.stdout)) == 3
-    assert_inputs_standardised_by_labelled_states(out, obs_dim=3)
+    assert_inputs_standardised_by_labelled_states("pebble.py", tmp_path / "norm", *PENDULUM, obs_dim=3)
 
 
 def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rate(tmp_path):
