@@ -361,25 +361,6 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
     assert "**Verdict: within noise: ours - reference = +10.0" in text
 
 
-def test_reward_inputs_normalised_as_the_reference_prefppo_saw_them():
-    import reward_learning
-
-    rng = np.random.default_rng(0)
-    obs = rng.normal(5.0, 3.0, size=(2, 40, 6, 2))  # both sides' training states: mean 5, std 3
-    obs[0, 0, 0, 1] = 1e4  # one far state, clipped at +10
-    actions = rng.uniform(-1, 1, size=(2, 40, 6, 1))
-    data = {"obs_dim": 2, "train0": np.concatenate([obs[0], actions[0]], -1),
-            "train1": np.concatenate([obs[1], actions[1]], -1), "later0": np.concatenate([obs[0], actions[0]], -1),
-            "later1": np.full((40, 6, 3), 5.0)}
-    result = reward_learning.normalized(data)
-    states = np.concatenate([result["train0"], result["train1"]])[..., :2].reshape(-1, 2)
-    assert result["train0"][0, 0, 1] == 10.0  # clipped
-    assert abs(states[:, 0].mean()) < 1e-5 and states[:, 0].std() == pytest.approx(1, abs=1e-4)  # column 0: no outlier
-    np.testing.assert_array_equal(result["train0"][..., 2:], data["train0"][..., 2:].astype(np.float32))  # actions
-    np.testing.assert_allclose(result["later0"], result["train0"])  # the training states' statistics, for all
-    assert result["train0"].dtype == np.float32
-
-
 def test_report_loads_a_final_model_saved_before_the_input_normaliser_as_raw_inputs(tmp_path):
     import torch
 

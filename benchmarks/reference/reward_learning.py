@@ -6,9 +6,9 @@ Several initialisation seeds a side; a table on stdout.
 
     python benchmarks/reference/reward_learning.py runs/parity/ours/pebble__walker-walk__oracle__..._s1 --sessions 5
 
---normalized-inputs adds ours on observations normalised as the reference's PrefPPO fed them to its reward network
-(VecNormalize: centred, unit variance, clipped to +-10; here with the mean and variance of the training segments'
-states), to measure that conditioning difference (docs/differences.md, item 17) on the same labels.
+--normalized-inputs adds ours with --reward-input-norm's normaliser (RewardEnsemble.set_input_stats: observations
+centred and scaled by the training segments' states, clipped to +-10, as the reference's PrefPPO fed VecNormalize'd
+ones to its reward network), to measure that conditioning difference (docs/differences.md, item 17).
 """
 
 import argparse
@@ -53,25 +53,18 @@ def judged(reward_fn, data: dict) -> tuple[float, float]:
     return correlation, agreement
 
 
-def normalized(data: dict) -> dict:
-    """The data with every observation as VecNormalize gives it (clip 10, epsilon 1e-8), actions as they are."""
-    obs_dim = data["obs_dim"]
-    states = np.concatenate([data["train0"], data["train1"]])[..., :obs_dim].reshape(-1, obs_dim)
-    mean, var = states.mean(0), states.var(0)
-    result = dict(data)
-    for key in ("train0", "train1", "later0", "later1"):
-        obs = np.clip((data[key][..., :obs_dim] - mean) / np.sqrt(var + 1e-8), -10, 10)
-        result[key] = np.concatenate([obs, data[key][..., obs_dim:]], -1).astype(np.float32)
-    return result
-
-
-def ours(data: dict, seed: int) -> dict:
+def ours(data: dict, seed: int, normalize: bool = False) -> dict:
+    """pebble.py's reward learning; normalize: as with --reward-input-norm (D's states standardise the
+    observations)."""
     sys.path.insert(0, str(ROOT))
     import pebble
 
     torch.manual_seed(seed)
     obs_action = data["train0"].shape[-1]
     model = pebble.RewardEnsemble(obs_action, 0, 3)  # the input is (observation, action) concatenated
+    if normalize:
+        states = np.concatenate([data["train0"], data["train1"]], 1)[..., : data["obs_dim"]]
+        model.set_input_stats(torch.as_tensor(states, dtype=torch.float32).flatten(0, 1))
     optimizer = pebble.adam(model.parameters(), 3e-4)
     preferences = {"inputs0": torch.as_tensor(data["train0"], dtype=torch.float32),
                    "inputs1": torch.as_tensor(data["train1"], dtype=torch.float32), "y": torch.as_tensor(data["y"])}
@@ -126,7 +119,7 @@ def main():
     rows = {"ours": [ours(data, seed) for seed in range(args.seeds)],
             "reference": [json.loads(line) for line in other.stdout.splitlines() if line.startswith("{")]}
     if args.normalized_inputs:
-        rows["ours, normalised inputs"] = [ours(normalized(data), seed) for seed in range(args.seeds)]
+        rows["ours, normalised inputs"] = [ours(data, seed, normalize=True) for seed in range(args.seeds)]
     print(f"{len(data['y'])} labels to train on, {len(data['later_y'])} later pairs to judge on ({args.run})")
     print("| implementation | seed | epochs | training accuracy | correlation with the true reward | later pairs "
           "in the teacher's order |")
