@@ -136,9 +136,9 @@ class Args:
     """most epochs of reward learning per session (stops early at 97% accuracy)"""
     label_smoothing: float = 0.0
     """soft labels (1 - s) * y + s / 2 (appendix uses s = 0.1 as a regulariser)"""
-    reward_input_norm: bool = False
-    """if toggled, the reward model sees observations standardised by D's states, clipped to +-10
-    (reference code: VecNormalize'd observations; docs/differences.md item 17)"""
+    reward_input_norm: bool = True
+    """the reward model sees observations standardised by D's states, clipped to +-10 (reference
+    code: VecNormalize'd observations, clip 10; docs/differences.md item 17)"""
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
     query_recent_episodes: int = 0

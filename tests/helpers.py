@@ -72,12 +72,12 @@ def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
 
 
 def assert_inputs_standardised_by_labelled_states(script: str, out: Path, *flags: str, obs_dim: int):
-    """A run with --reward-input-norm and 3 sessions: its final reward model standardises observations by the mean
-    and std of every state of the kept labelled segments (D after the last session), clips at 10, and leaves actions
-    as they are."""
+    """A run with these flags (--reward-input-norm on, by flag or default) and 3 sessions: its final reward model
+    standardises observations by the mean and std of every state of the kept labelled segments (D after the last
+    session), clips at 10, and leaves actions as they are."""
     import torch
 
-    result = run_script(script, out, *flags, "--reward-input-norm")
+    result = run_script(script, out, *flags)
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(session_lines(result.stdout)) == 3
     labels = saved_labels(out)

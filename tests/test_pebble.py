@@ -479,7 +479,8 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
 
 
 def test_reward_input_norm_standardises_by_the_labelled_states(tmp_path):
-    assert_inputs_standardised_by_labelled_states("pebble.py", tmp_path / "norm", *PENDULUM, obs_dim=3)
+    assert_inputs_standardised_by_labelled_states("pebble.py", tmp_path / "norm", *PENDULUM,
+                                                  "--reward-input-norm", obs_dim=3)
 
 
 def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rate(tmp_path):

@@ -409,8 +409,18 @@ def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, s
         assert (y == 0.5).any()
 
 
-def test_reward_input_norm_standardises_by_the_labelled_states(tmp_path):
+def test_reward_input_norm_is_on_by_default_and_standardises_by_the_labelled_states(tmp_path):
     assert_inputs_standardised_by_labelled_states("prefppo.py", tmp_path / "norm", *PENDULUM, obs_dim=3)
+
+
+def test_no_reward_input_norm_gives_the_reward_model_raw_inputs(tmp_path):
+    out = tmp_path / "raw"
+    result = run_prefppo(out, *PENDULUM, "--no-reward-input-norm")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert len(session_lines(result.stdout)) == 3
+    saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]
+    assert not saved["input_mean"].any() and (saved["input_std"] == 1).all()
+    assert saved["input_clip"].item() == math.inf
 
 
 def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
