@@ -174,8 +174,7 @@ def test_the_reference_networks_load_into_our_classes_and_are_evaluated_as_ours(
     model = reference_run.final_model(tmp_path, 11)
     ours = pebble.Actor(3, 1, 8, 1)
     ours.load_state_dict(model["actor"])
-    loaded = pebble.RewardEnsemble(3, 1, 2)
-    loaded.load_state_dict(model["reward_model"])
+    loaded = reference_run.loaded_reward_model(model["reward_model"], 3, 1)  # 2 members, identity normaliser
     pebble.TwinCritic(3, 1, 8, 1).load_state_dict(model["critic"])
     x = torch.randn(5, 3)
     assert torch.equal(ours.net(x), actor(x))

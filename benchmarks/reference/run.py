@@ -301,6 +301,16 @@ def prefppo_reward_model(log_dir: Path, total_timesteps: int) -> dict:
                                                                      weights_only=True).items()})}
 
 
+def loaded_reward_model(state: dict, obs_dim: int, action_dim: int):
+    """Our RewardEnsemble holding this state (as many members as it has; its input normaliser's buffers too)."""
+    import pebble
+
+    size = len({key.split(".")[1] for key in state if key.startswith("members.")})
+    reward_model = pebble.RewardEnsemble(obs_dim, action_dim, size)
+    reward_model.load_state_dict(state)
+    return reward_model
+
+
 def final_reward_correlation(model: dict, args: Args) -> float:
     """The Pearson correlation of the reference's final learned reward with the true one along --eval-episodes
     episodes of its final actor's mean action, measured by pebble.py's evaluate (the episodes of ours' first
@@ -312,8 +322,7 @@ def final_reward_correlation(model: dict, args: Args) -> float:
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     actor = pebble.Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers)
     actor.load_state_dict(model["actor"])
-    reward_model = pebble.RewardEnsemble(obs_dim, action_dim, len({key.split(".")[1] for key in model["reward_model"]}))
-    reward_model.load_state_dict(model["reward_model"])
+    reward_model = loaded_reward_model(model["reward_model"], obs_dim, action_dim)
     seeds = [pebble.episode_seed(args.seed, pebble.EVAL_STREAM, j) for j in range(args.eval_episodes)]
     policy = pebble.mean_policy(actor, torch.device("cpu"))
     return pebble.evaluate(policy, reward_model, env, seeds, torch.device("cpu"))["reward_correlation"]
