@@ -121,6 +121,10 @@ PRESETS = {
         "PEBBLE under the mistake teacher (eps 0.1), as parity-pebble, 3 seeds each",
         Grid(implementations=IMPLEMENTATIONS, teachers=("mistake",), budgets=("1000/100",), ground_truth=False,
              root="runs/parity", flags=CPU_PEBBLE)),
+    "parity-pebble-cheetah": (
+        "PEBBLE (oracle, 1000 labels) on a second task, cheetah-run, as parity-pebble, 3 seeds each",
+        Grid(implementations=IMPLEMENTATIONS, env_ids=("cheetah-run",), teachers=("oracle",), budgets=("1000/100",),
+             ground_truth=False, root="runs/parity", flags=CPU_PEBBLE)),
     "parity-sac": (
         "SAC on the true reward (the same pre-training and critic reset) at the README's CPU scale, ours and the "
         "reference code's train_SAC.py, 3 seeds each",

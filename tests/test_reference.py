@@ -226,6 +226,9 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
     assert len(printed) == 3 and len(lines) == 6
     assert all(line[3:5] == ["--algorithm", "prefppo"] for line in printed)
     assert printed[0][printed[0].index("--total-timesteps") + 1] == "1000000"
+    lines, printed = dry_run("parity-pebble-cheetah", tmp_path / "c")
+    assert len(printed) == 3 and len(lines) == 6
+    assert all(line[line.index("--env-id") + 1] == "cheetah-run" for line in printed)
 
 
 def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=(10000, 20000)):
