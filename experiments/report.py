@@ -523,7 +523,7 @@ def verdict(row: dict) -> str:
     side = f"ours is {'lower' if point < 0 else 'higher'} by {abs(point):.1f} " \
            f"({abs(point) / abs(row['reference_final_mean']):.0%} of the reference's mean)"
     if np.isnan(row["welch_p"]):  # welch_p: nan with fewer than 2 runs a side
-        return f"inconclusive: {side} (one run a side: no interval and no test; more seeds needed)"
+        return f"inconclusive: {side} (a single run on a side: no test; more seeds needed)"
     zero_inside, significant = low <= 0 <= high, row["welch_p"] < 0.05
     if zero_inside and not significant:
         return f"within noise: ours - reference = {point:+.1f}, {interval}"

@@ -285,7 +285,7 @@ def test_equal_arms_are_within_noise():
     row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134}
     assert report.verdict(row).startswith("inconclusive: ours is lower by 176.7")
     one_each = row | {"difference": (-50.0, -50.0, -50.0), "welch_p": report.welch_p(np.array([550.0]), np.array([600.0]))}
-    assert report.verdict(one_each).endswith("(one run a side: no interval and no test; more seeds needed)")
+    assert report.verdict(one_each).endswith("(a single run on a side: no test; more seeds needed)")
 
 
 def test_compare_logs_sets_the_diagnostics_of_both_side_by_side(tmp_path):
