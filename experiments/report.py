@@ -354,7 +354,7 @@ def load_final_model(run: Run) -> tuple:
     raw_inputs = {key: value for key, value in reward_model.state_dict().items() if key.startswith("input_")}
     reward_model.load_state_dict(raw_inputs | saved["reward_model"])
     obs_stats = None
-    if "obs_mean" in saved:  # prefppo: the policy sees normalised observations, the reward model raw ones
+    if "obs_mean" in saved:  # prefppo: the policy's observation normaliser (the reward model's is in its buffers)
         obs_stats = module.RunningMeanStd(obs_dim)
         obs_stats.mean, obs_stats.var = saved["obs_mean"].numpy(), saved["obs_var"].numpy()
     return module, env, actor, reward_model, obs_stats
