@@ -105,6 +105,9 @@ class Args:
     """discount"""
     gae_lambda: float | None = None
     """GAE lambda"""
+    bootstrap_time_limits: bool = True
+    """add gamma V(last state) where an episode ends by its time limit (docs/differences.md 16);
+    --no-bootstrap-time-limits: every end is terminal (reference code: its vendored SB3)"""
     use_sde: bool = True
     """generalized state-dependent exploration, gSDE (reference code: use_sde 1); --no-use-sde: a
     Gaussian"""
@@ -493,6 +496,13 @@ def compute_gae(rewards, values, next_values, dones, gamma, gae_lambda):
         last = delta + gamma * gae_lambda * not_done * last
         advantages[t] = last
     return advantages, advantages + values
+
+
+def time_limit_bootstrap(next_values, terminated, truncated, gamma, bootstrap: bool):
+    """gamma * V(final observation) at the steps that end an episode by its time limit only, for
+    compute_gae's rewards; zero everywhere with bootstrap False (the reference's SB3: terminal)."""
+    truncated_only = torch.as_tensor(truncated & ~terminated & bootstrap, device=next_values.device)
+    return gamma * next_values * truncated_only
 
 
 def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
@@ -1309,8 +1319,8 @@ if __name__ == "__main__":
                 with torch.no_grad():
                     final = torch.as_tensor(obs_stats.normalize(final_obs), device=device)
                     next_values_buf[t] = critic(final)[:, 0]
-                truncated_only = torch.as_tensor(truncated & ~terminated, device=device)
-                bootstrap_buf[t] = args.gamma * next_values_buf[t] * truncated_only
+                bootstrap_buf[t] = time_limit_bootstrap(next_values_buf[t], terminated, truncated,
+                                                        args.gamma, args.bootstrap_time_limits)
                 raw_obs = next_raw_obs
             progress.global_step += rollout
 

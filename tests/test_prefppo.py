@@ -58,6 +58,16 @@ def test_gae_stops_at_a_done_step_and_uses_the_truncation_bootstrap_in_the_rewar
     torch.testing.assert_close(advantages[:, 0], torch.tensor([a0, a1, a2]))
 
 
+def test_time_limit_bootstrap_is_gamma_v_at_truncations_only_and_off_with_the_reference_way():
+    next_values = torch.tensor([2.0, 3.0, 5.0, 7.0])
+    terminated = np.array([False, True, False, True])
+    truncated = np.array([True, False, False, True])  # env 3 terminated at its time limit: terminal
+    bootstrap = prefppo.time_limit_bootstrap(next_values, terminated, truncated, 0.9, True)
+    torch.testing.assert_close(bootstrap, torch.tensor([1.8, 0.0, 0.0, 0.0]))
+    reference_way = prefppo.time_limit_bootstrap(next_values, terminated, truncated, 0.9, False)
+    torch.testing.assert_close(reference_way, torch.zeros(4))
+
+
 @pytest.mark.parametrize("env_id", ["walker-walk", "button-press", "ConstantPenalty-v0"])
 def test_an_episode_is_a_function_of_its_seed_and_actions(env_id):
     """What --resume relies on: an env reset with the episode's seed and given the same actions goes through
@@ -445,11 +455,14 @@ def test_no_use_sde_trains_a_state_independent_std_with_the_compiled_loss(tmp_pa
     assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
 
-def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
+def test_same_seed_gives_the_same_run_on_cpu_and_no_bootstrap_time_limits_another(tmp_path):
     flags = [*PENDULUM, "--total-timesteps", "3200", "--eval-every", "1600"]
     first, second = run_prefppo(tmp_path / "a", *flags), run_prefppo(tmp_path / "b", *flags)
-    assert first.returncode == second.returncode == 0
+    # Pendulum ends every episode by its time limit: the reference's terminal ends change the updates
+    terminal = run_prefppo(tmp_path / "c", *flags, "--no-bootstrap-time-limits")
+    assert first.returncode == second.returncode == terminal.returncode == 0
     assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
+    assert eval_curve(tmp_path / "c") != eval_curve(tmp_path / "a")
 
 
 BAD_INPUTS = [
