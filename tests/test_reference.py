@@ -231,6 +231,20 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
     assert all(line[line.index("--env-id") + 1] == "cheetah-run" for line in printed)
 
 
+def test_parity_script_runs_every_parity_preset_and_stops_before_the_report_on_a_dry_run(tmp_path):
+    script = ROOT / "benchmarks" / "reference" / "parity.sh"
+    result = subprocess.run([str(script), "--dry-run"], capture_output=True, text=True, cwd=tmp_path,
+                            env=ENV | {"PARITY_ROOT": str(tmp_path / "runs"), "PYTHON": sys.executable})
+    assert result.returncode == 0, result.stderr[-2000:]
+    presets = [name for name in grid.PRESETS if name.startswith("parity-")]
+    expected = [len(grid.expand(grid.PRESETS[name][1])) for name in presets]
+    grids = [line for line in result.stdout.splitlines() if line.startswith("grid: ")]
+    assert [int(line.split()[1]) for line in grids] == expected  # each preset once, in the grid's order
+    assert all(f" in {tmp_path / 'runs'}:" in line for line in grids)
+    assert result.stdout.count("# start: reference__") == sum(expected) // 2
+    assert not (tmp_path / "runs" / "report").exists()
+
+
 def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=(10000, 20000)):
     path = root / name
     path.mkdir(parents=True)
