@@ -515,6 +515,35 @@ def parity_rows(runs: list[Run], reps: int, seed: int) -> list[dict]:
     return rows
 
 
+def pooled_differences(pairs: list[tuple[tuple, list[Run], list[Run]]], reps: int, seed: int) -> list[dict]:
+    """Per algorithm with two or more settings run by both: is there a gap too small for any one setting's seeds? The
+    mean over settings of (ours - reference) / the reference's mean final return, each setting weighing the same, with
+    a 95% bootstrap CI (seeds resampled within each arm of each setting), and Stouffer's combination of the settings'
+    one-sided Welch tests (p of ours lower, and of ours higher, than the reference)."""
+    from scipy import stats
+
+    by_algorithm = defaultdict(list)
+    for setting, ours, reference in pairs:
+        finals = [np.array([r.score for r in group]) for group in (ours, reference)]
+        if min(map(len, finals)) >= 2:
+            by_algorithm[setting[0]].append(finals)
+    rng = np.random.default_rng(seed)
+    pooled = []
+    for algorithm, settings in sorted(by_algorithm.items()):
+        if len(settings) < 2:
+            continue
+        relative = np.mean([(ours.mean() - ref.mean()) / abs(ref.mean()) for ours, ref in settings])
+        draws = np.mean([(rng.choice(ours, (reps, len(ours))).mean(1) - rng.choice(ref, (reps, len(ref))).mean(1))
+                         / abs(ref.mean()) for ours, ref in settings], axis=0)
+        z = [stats.norm.isf(stats.ttest_ind(ours, ref, equal_var=False, alternative="less").pvalue)
+             for ours, ref in settings]
+        combined = float(np.sum(z) / np.sqrt(len(z)))
+        pooled.append({"algorithm": algorithm, "settings": len(settings), "relative_difference": float(relative),
+                       "low": float(np.percentile(draws, 2.5)), "high": float(np.percentile(draws, 97.5)),
+                       "p_lower": float(stats.norm.sf(combined)), "p_higher": float(stats.norm.cdf(combined))})
+    return pooled
+
+
 def verdict(row: dict) -> str:
     """Within noise when the bootstrap CI of the difference holds 0 and Welch's p >= 0.05; not within noise when
     neither does; inconclusive when they disagree (with few seeds the percentile bootstrap is too narrow)."""
@@ -558,7 +587,8 @@ def safe_file(name: str) -> str:
     return "".join(c if c.isalnum() or c in "._-" else "-" for c in name)
 
 
-def parity_markdown(rows: list[dict], figures: list[Path], target: Path, command: str, reps: int) -> str:
+def parity_markdown(rows: list[dict], figures: list[Path], pooled: list[dict], target: Path, command: str,
+                    reps: int) -> str:
     lines = ["# Parity with the reference code", "",
              f"Made by `{command}` from the finished runs: "
              "each setting run by both pebble.py (ours) and the reference code (rll-research/BPref through "
@@ -587,6 +617,14 @@ def parity_markdown(rows: list[dict], figures: list[Path], target: Path, command
         lines += ["", f"Difference ours - reference: {point:+.1f} [{low:+.1f}, {high:+.1f}]", "",
                   f"![{figure.stem}]({os.path.relpath(figure, target.parent)})",
                   ""]
+    for row in pooled:
+        lines += [f"## {row['algorithm']}: all {row['settings']} settings pooled", "",
+                  "A gap too small for any one setting's seeds would show here: the mean over the settings of ours - "
+                  "the reference's mean final return, relative to the reference's, each setting weighing the same, "
+                  "with its 95% bootstrap CI; and Stouffer's combination of the settings' one-sided Welch tests.", "",
+                  f"**Ours - reference: {row['relative_difference']:+.1%} of the reference's mean return, 95% CI "
+                  f"[{row['low']:+.1%}, {row['high']:+.1%}]; combined p of ours lower {row['p_lower']:.3f}, of ours "
+                  f"higher {row['p_higher']:.3f}.**", ""]
     return "\n".join(lines)
 
 
@@ -771,13 +809,18 @@ def report(args: Args) -> Path:
         parity = parity_rows(runs, args.reps, args.seed)
         if not parity:
             raise ReportError(f"--parity: no setting below {root} has finished runs of both ours and the reference")
-        pairs = {setting: {"ours": ours, "reference": reference} for setting, ours, reference in parity_pairs(runs)}
-        parity_figures = [parity_figure(setting, arms, out) for setting, arms in pairs.items()]
+        pairs = parity_pairs(runs)
+        parity_figures = [parity_figure(setting, {"ours": ours, "reference": reference}, out)
+                          for setting, ours, reference in pairs]
         command = shlex.join(["python", "experiments/report.py", *sys.argv[1:]])
-        target.write_text(parity_markdown(parity, parity_figures, target, command, args.reps))
+        pooled = pooled_differences(pairs, args.reps, args.seed)
+        target.write_text(parity_markdown(parity, parity_figures, pooled, target, command, args.reps))
         write_csv(out / "parity.csv", [flat(row) for row in parity])
         for row in parity:
             print(f"parity: {' / '.join(row[c] for c in SETTING)}: {verdict(row)}")
+        for row in pooled:
+            print(f"parity: {row['algorithm']}, {row['settings']} settings pooled: {row['relative_difference']:+.1%} "
+                  f"[{row['low']:+.1%}, {row['high']:+.1%}], p lower {row['p_lower']:.3f}")
     (out / "report.md").write_text("\n".join(lines))
     write_csv(out / "runs.csv", run_rows)
     write_csv(out / "aggregates.csv", [flat(row) for row in settings])

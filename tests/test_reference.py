@@ -302,6 +302,27 @@ def test_equal_arms_are_within_noise():
     assert report.verdict(one_each).endswith("(a single run on a side: no test; more seeds needed)")
 
 
+def test_a_gap_too_small_for_each_setting_shows_when_the_settings_are_pooled():
+    from types import SimpleNamespace
+
+    def arm(scores):
+        return [SimpleNamespace(score=score) for score in scores]
+
+    reference = [900.0, 1000.0, 1100.0]
+    ours = [810.0, 900.0, 990.0]  # 10% lower in every setting
+    pairs = [(("pebble", task), arm(ours), arm(reference)) for task in ("a", "b", "c")]
+    pairs.append((("prefppo", "a"), arm(ours), arm(reference)))  # one setting: nothing to pool
+    [row] = report.pooled_differences(pairs, 4000, 0)
+    assert row["algorithm"] == "pebble" and row["settings"] == 3
+    assert row["relative_difference"] == pytest.approx(-0.1)
+    assert row["low"] < -0.1 < row["high"] < 0
+    alone = report.welch_p(np.array(ours), np.array(reference)) / 2  # one-sided, ours lower
+    assert alone > 0.1 and row["p_lower"] < alone / 2 and row["p_higher"] == pytest.approx(1 - row["p_lower"])
+    same = [(("pebble", task), arm(reference), arm(reference)) for task in ("a", "b")]
+    [row] = report.pooled_differences(same, 4000, 0)
+    assert row["relative_difference"] == 0 and row["low"] < 0 < row["high"] and row["p_lower"] == pytest.approx(0.5)
+
+
 def test_compare_logs_sets_the_diagnostics_of_both_side_by_side(tmp_path):
     from torch.utils.tensorboard import SummaryWriter
 
