@@ -20,6 +20,7 @@ from tests.helpers import ENV, ROOT
 sys.path.insert(0, str(ROOT / "benchmarks" / "reference"))
 import patch  # noqa: E402
 import run as reference_run  # noqa: E402
+import stale_inputs  # noqa: E402
 
 RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
 
@@ -321,6 +322,18 @@ def test_a_gap_too_small_for_each_setting_shows_when_the_settings_are_pooled():
     same = [(("pebble", task), arm(reference), arm(reference)) for task in ("a", "b")]
     [row] = report.pooled_differences(same, 4000, 0)
     assert row["relative_difference"] == 0 and row["low"] < 0 < row["high"] and row["p_lower"] == pytest.approx(0.5)
+
+
+def test_moving_normaliser_statistics_cover_every_observation_up_to_each_step():
+    # 2 envs, episodes of 2 steps, 2 waves; one observation dimension: episode e holds [10 e, 10 e + 1]
+    episodes = [(np.array([[10.0 * e], [10.0 * e + 1]]), None, None, e) for e in range(4)]
+    mean, std = stale_inputs.running_stats(episodes, num_envs=2)
+    assert mean.shape == std.shape == (2, 2, 1)
+    seen = [[0, 10], [0, 10, 1, 11], [0, 10, 1, 11, 20, 30], [0, 10, 1, 11, 20, 30, 21, 31]]
+    for i, values in enumerate(seen):  # in collection order: wave 0 step 0, step 1, wave 1 step 0, step 1
+        assert mean[i // 2, i % 2, 0] == pytest.approx(np.mean(values))
+        assert std[i // 2, i % 2, 0] == pytest.approx(np.std(values), rel=1e-6)
+    assert stale_inputs.normalized(np.array([1000.0]), np.zeros(1), np.ones(1))[0] == 10  # clipped as VecNormalize
 
 
 def test_compare_logs_sets_the_diagnostics_of_both_side_by_side(tmp_path):
