@@ -489,11 +489,11 @@ def curve(run: Run) -> dict:
     return {row["step"]: row[run.metric] for row in run.rows}
 
 
-def parity_rows(runs: list[Run], reps: int, seed: int) -> list[dict]:
+def parity_rows(pairs: list[tuple[tuple, list[Run], list[Run]]], reps: int, seed: int) -> list[dict]:
     """One row per setting run by both implementations: each arm's final score, mean over its evaluations, IQM with
     its 95% CI, reward correlation and wall time, and the difference ours - reference with its bootstrap CI."""
     rows = []
-    for setting, ours, reference in parity_pairs(runs):
+    for setting, ours, reference in pairs:
         arms = {"ours": ours, "reference": reference}
         finals = {arm: np.array([r.score for r in group]) for arm, group in arms.items()}
         iqm = aggregate({arm: scores[:, None] for arm, scores in finals.items()}, reps, seed)
@@ -806,10 +806,10 @@ def report(args: Args) -> Path:
 
     if args.parity:
         target = Path(args.parity).resolve()
-        parity = parity_rows(runs, args.reps, args.seed)
+        pairs = parity_pairs(runs)
+        parity = parity_rows(pairs, args.reps, args.seed)
         if not parity:
             raise ReportError(f"--parity: no setting below {root} has finished runs of both ours and the reference")
-        pairs = parity_pairs(runs)
         parity_figures = [parity_figure(setting, {"ours": ours, "reference": reference}, out)
                           for setting, ours, reference in pairs]
         command = shlex.join(["python", "experiments/report.py", *sys.argv[1:]])
