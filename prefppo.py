@@ -1332,6 +1332,9 @@ if __name__ == "__main__":
                 with progress.overhead(), torch.no_grad():  # r_hat(s, a): the ensemble mean
                     obs_actions = torch.cat([raw_obs_buf, env_actions_buf], dim=-1)
                     rewards = reward_model(obs_actions).mean(0)[..., 0]
+                    pair = torch.stack([rewards.flatten(), true_rewards_buf.flatten()])
+                    writer.add_scalar("reward/rollout_correlation", torch.corrcoef(pair)[0, 1],
+                                      progress.global_step)
             advantages, returns = compute_gae(rewards + bootstrap_buf, values_buf, next_values_buf,
                                               dones_buf, args.gamma, args.gae_lambda)
 
