@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import prefppo
 from samplers import planned_labels, schedule_sizes
@@ -382,6 +383,12 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
     config = json.loads((out / "config.json").read_text())
     assert config["gae_lambda"] == 0.92 and config["learning_rate"] == 5e-5  # walker-walk preset
     assert config["teacher_gamma"] == 1.0 and config["teacher_beta"] == math.inf  # the oracle, written out
+    # r_hat against the true reward over each rollout on the learned reward (not the 2 of pre-training)
+    events = EventAccumulator(str(out), size_guidance={"scalars": 0})
+    events.Reload()
+    correlations = events.Scalars("reward/rollout_correlation")
+    assert [e.step for e in correlations] == [3000, 4000, 5000]
+    assert all(-1 <= e.value <= 1 for e in correlations)
 
 
 def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):

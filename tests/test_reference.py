@@ -8,6 +8,7 @@ import math
 import shlex
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ sys.path.insert(0, str(ROOT / "benchmarks" / "reference"))
 import patch  # noqa: E402
 import run as reference_run  # noqa: E402
 import stale_inputs  # noqa: E402
+import trace_prefppo  # noqa: E402
 
 RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
 
@@ -424,3 +426,60 @@ def test_report_loads_a_final_model_saved_before_the_input_normaliser_as_raw_inp
     env.close()
     x = torch.randn(4, 4) * 50
     assert loaded.input_clip.item() == math.inf and torch.equal(loaded(x), reward(x))
+
+
+def fake_reference_prefppo(monkeypatch):
+    """The three reference classes trace_prefppo wraps, as modules of their names: a rollout steps the env, then asks
+    the reward model for r_hat of the step (the reference's order), and returns "collected"."""
+    class VecNormalize:
+        def __init__(self, rewards):
+            self.rewards = iter(rewards)
+
+        def step_wait(self):
+            return None, next(self.rewards), None, None
+
+    class RewardModel:
+        def r_hat_batch(self, x):
+            return 2 * x + 1  # a perfect reward up to scale: correlation 1
+
+    class OnPolicyRewardAlgorithm:
+        def collect_rollouts(self, env, n_rollout_steps):
+            for _ in range(n_rollout_steps):
+                _, rewards, _, _ = env.step_wait()
+                self.reward_model.r_hat_batch(np.array(rewards))
+                self.num_timesteps += len(rewards)
+            return "collected"
+
+    modules = {"reward_model": {"RewardModel": RewardModel}, "stable_baselines3": {}, "stable_baselines3.common": {},
+               "stable_baselines3.common.on_policy_with_reward_algorithm":
+                   {"OnPolicyRewardAlgorithm": OnPolicyRewardAlgorithm},
+               "stable_baselines3.common.vec_env": {"VecNormalize": VecNormalize}}
+    for name, members in modules.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(members)
+        monkeypatch.setitem(sys.modules, name, module)
+    return VecNormalize, RewardModel, OnPolicyRewardAlgorithm
+
+
+def test_the_reference_trace_records_each_rollouts_learned_and_true_rewards(tmp_path, monkeypatch):
+    VecNormalize, RewardModel, OnPolicyRewardAlgorithm = fake_reference_prefppo(monkeypatch)
+    trace = tmp_path / "rollouts.csv"
+    trace_prefppo.install(str(trace))
+    algorithm = OnPolicyRewardAlgorithm()
+    algorithm.reward_model, algorithm.num_timesteps = RewardModel(), 0
+    RewardModel().r_hat_batch(np.array([100.0, -100.0]))  # outside a rollout: not recorded
+    env = VecNormalize([[1.0, 2.0], [3.0, 5.0], [0.0, 1.0], [4.0, 2.0]])
+    assert algorithm.collect_rollouts(env, 2) == "collected"
+    assert algorithm.collect_rollouts(env, 2) == "collected"
+    rows = list(csv.DictReader(trace.open()))
+    assert [int(row["step"]) for row in rows] == [4, 8]
+    assert [float(row["correlation"]) for row in rows] == pytest.approx([1.0, 1.0])
+    assert float(rows[0]["true_mean"]) == pytest.approx(2.75) and float(rows[1]["learned_mean"]) == pytest.approx(4.5)
+    assert float(rows[0]["learned_std"]) == pytest.approx(2 * np.std([1, 2, 3, 5]))
+
+
+def test_the_reference_trace_refuses_rewards_it_cannot_pair():
+    row = trace_prefppo.rollout_row(10, [np.array([1.0, 0.0]), np.array([0.0, 1.0])], [[0.0, 1.0], [1.0, 0.0]])
+    assert row["correlation"] == pytest.approx(-1.0)
+    with pytest.raises(ValueError, match="3 learned rewards against 2"):
+        trace_prefppo.rollout_row(10, [np.zeros(3)], [np.zeros(2)])
