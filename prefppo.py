@@ -142,6 +142,9 @@ class Args:
     reward_input_norm: bool = True
     """the reward model sees observations standardised by D's states, clipped to +-10 (reference
     code: VecNormalize'd observations, clip 10; docs/differences.md item 17)"""
+    stale_reward_inputs: bool = False
+    """the reference's way, for an ablation (defect 7): queries hold the normalised observations of
+    their step, r_hat sees the current ones (labels/ too; implies --no-reward-input-norm)"""
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
     query_recent_episodes: int = 0
@@ -768,6 +771,7 @@ def resolve(args: Args) -> Args:
     for key, value in preset.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
+    args.reward_input_norm &= not args.stale_reward_inputs
     return args
 
 
@@ -1056,10 +1060,10 @@ def eval_csv(rows: list[dict]) -> bytes:
     return "".join(",".join(map(str, line)) + "\n" for line in lines).encode()
 
 
-def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
+def evaluate(policy, reward_model, env, seeds: list[int], device, reward_obs=None) -> dict:
     """Episodes of policy(observation) -> action (one per reset seed) with the true reward (B-Pref's
     metric), Meta-World success (at any step), and the Pearson correlation of learned and true
-    per-step rewards."""
+    per-step rewards (r_hat of reward_obs(observation), the observation itself by default)."""
     returns = []
     successes = []
     true_rewards = []
@@ -1072,7 +1076,8 @@ def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
             with torch.no_grad():
                 action = policy(obs)
                 if reward_model is not None:
-                    obs_action = torch.cat([torch.as_tensor(obs, device=device), action])
+                    reward_input = obs if reward_obs is None else reward_obs(obs)
+                    obs_action = torch.cat([torch.as_tensor(reward_input, device=device), action])
                     learned.append(reward_model(obs_action).mean().item())
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
             done = terminated or truncated
@@ -1087,15 +1092,16 @@ def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
 
 
-def evaluation(args, progress, policy, reward_model, eval_env, writer, start_time: float, device):
+def evaluation(args, progress, policy, reward_model, eval_env, writer, start_time: float, device,
+               reward_obs=None):
     """The next eval_episodes evaluation episodes: a row of eval.csv (rewritten whole), TensorBoard.
-    """
+    reward_obs: what r_hat sees of an observation (evaluate)."""
     if args.capture_video:
         eval_env.name_prefix = f"step_{progress.global_step}"
     first = len(progress.eval_rows) * args.eval_episodes
     seeds = [episode_seed(args.seed, EVAL_STREAM, first + j) for j in range(args.eval_episodes)]
     learned_reward = reward_model if progress.pretrained and not args.ground_truth_reward else None
-    result = evaluate(policy, learned_reward, eval_env, seeds, device)
+    result = evaluate(policy, learned_reward, eval_env, seeds, device, reward_obs)
     if args.capture_video and eval_env.recording:  # write the video now, not at the next reset
         eval_env.stop_recording()
     progress.eval_rows.append({"step": progress.global_step, **result,
@@ -1132,12 +1138,13 @@ def restart_envs(envs, progress, seed: int) -> np.ndarray:
     return np.stack(raw_obs)
 
 
-def step_envs(envs, actions: np.ndarray, raw_obs: np.ndarray, progress, episodes, writer, args,
-              step: int) -> tuple:
-    """One step of every env; an env whose episode ends hands it to the query pool and is reset with
-    its next episode's seed. Returns the next observations, the observations the step reached (an
-    ended episode's real last state), true rewards, terminations and truncations. `step`: the
-    environment steps done once this one is (an ended episode's step in TensorBoard)."""
+def step_envs(envs, actions: np.ndarray, raw_obs: np.ndarray, pool_obs: np.ndarray, progress,
+              episodes, writer, args, step: int) -> tuple:
+    """One step of every env; an env whose episode ends hands it to the query pool (pool_obs: the
+    observations it keeps) and is reset with its next episode's seed. Returns the next observations,
+    the observations the step reached (an ended episode's real last state), true rewards,
+    terminations and truncations. `step`: the environment steps done once this one is (an ended
+    episode's step in TensorBoard)."""
     next_raw_obs = raw_obs.copy()
     final_obs = raw_obs.copy()
     true_reward = np.zeros(len(envs))
@@ -1149,7 +1156,7 @@ def step_envs(envs, actions: np.ndarray, raw_obs: np.ndarray, progress, episodes
             raise FloatingPointError(f"non-finite reward ({true_reward[i]}) or observation from "
                                      "the environment")
         running = progress.running_episodes[i]
-        for part, value in zip(running, (raw_obs[i], actions[i], true_reward[i])):
+        for part, value in zip(running, (pool_obs[i], actions[i], true_reward[i])):
             part.append(value)
         next_raw_obs[i] = final_obs[i]
         if terminated[i] or truncated[i]:
@@ -1306,9 +1313,10 @@ if __name__ == "__main__":
                     action, logprobs_buf[t] = actor.sample(obs, t, args.sde_freq)
                     values_buf[t] = critic(obs)[:, 0]
                 env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio uses `action`
+                pool_obs = obs.cpu().numpy() if args.stale_reward_inputs else raw_obs
                 next_raw_obs, final_obs, true_reward, terminated, truncated = step_envs(
-                    envs, env_action.cpu().numpy(), raw_obs, progress, episodes, writer, args,
-                    global_step + (t + 1) * args.num_envs)
+                    envs, env_action.cpu().numpy(), raw_obs, pool_obs, progress, episodes, writer,
+                    args, global_step + (t + 1) * args.num_envs)
                 raw_obs_buf[t] = torch.as_tensor(raw_obs)
                 obs_buf[t] = obs
                 actions_buf[t] = action
@@ -1330,7 +1338,8 @@ if __name__ == "__main__":
             rewards = true_rewards_buf if progress.pretrained else intrinsic_buf
             if progress.pretrained and not args.ground_truth_reward:
                 with progress.overhead(), torch.no_grad():  # r_hat(s, a): the ensemble mean
-                    obs_actions = torch.cat([raw_obs_buf, env_actions_buf], dim=-1)
+                    reward_obs = obs_buf if args.stale_reward_inputs else raw_obs_buf
+                    obs_actions = torch.cat([reward_obs, env_actions_buf], dim=-1)
                     rewards = reward_model(obs_actions).mean(0)[..., 0]
                     pair = torch.stack([rewards.flatten(), true_rewards_buf.flatten()])
                     writer.add_scalar("reward/rollout_correlation", torch.corrcoef(pair)[0, 1],
@@ -1357,8 +1366,9 @@ if __name__ == "__main__":
             next_eval = min((len(progress.eval_rows) + 1) * args.eval_every, args.total_timesteps)
             if progress.global_step >= next_eval:
                 policy = mean_policy(actor, obs_stats, device)
+                reward_obs = obs_stats.normalize if args.stale_reward_inputs else None
                 evaluation(args, progress, policy, reward_model, eval_env, writer, start_time,
-                           device)
+                           device, reward_obs)
             if time.time() - last_print > 10 or progress.global_step >= args.total_timesteps:
                 last_print = time.time()
                 print_progress(args, progress, start_time, writer)

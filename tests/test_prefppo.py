@@ -440,6 +440,28 @@ def test_no_reward_input_norm_gives_the_reward_model_raw_inputs(tmp_path):
     assert saved["input_clip"].item() == math.inf
 
 
+def test_stale_reward_inputs_keep_the_normalised_observations_of_their_step_the_reference_way(tmp_path):
+    raw, stale = tmp_path / "raw", tmp_path / "stale"
+    for out, flags in ((raw, ["--no-reward-input-norm"]), (stale, ["--stale-reward-inputs"])):
+        result = run_prefppo(out, *PENDULUM, *flags)
+        assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads((stale / "config.json").read_text())["reward_input_norm"] is False  # implied
+    saved = torch.load(stale / "final_model.pt", weights_only=True)["reward_model"]
+    assert not saved["input_mean"].any() and saved["input_clip"].item() == math.inf  # no second normaliser
+    # until the first session r_hat plays no part: the first queries are the same segments, kept as the
+    # policy's observations, normalised by the running statistics of their step (clipped at 10)
+    first_raw, first_stale = saved_labels(raw)[0], saved_labels(stale)[0]
+    for side in ("0", "1"):
+        np.testing.assert_array_equal(first_raw["actions" + side], first_stale["actions" + side])
+        np.testing.assert_array_equal(first_raw["rewards" + side], first_stale["rewards" + side])
+    raw_obs = np.concatenate([first_raw["obs0"], first_raw["obs1"]]).reshape(-1, 3)
+    stale_obs = np.concatenate([first_stale["obs0"], first_stale["obs1"]]).reshape(-1, 3)
+    assert not np.allclose(raw_obs, stale_obs) and np.abs(stale_obs).max() <= 10
+    for feature in range(3):  # an affine map per feature whose statistics drift slowly
+        assert np.corrcoef(raw_obs[:, feature], stale_obs[:, feature])[0, 1] > 0.9
+    assert abs(stale_obs[:, 2].std() - 1) < abs(raw_obs[:, 2].std() - 1)  # the velocity, on the unit scale
+
+
 def test_ground_truth_reward_runs_ppo_with_pretraining_and_no_teacher(tmp_path):
     out = tmp_path / "truth"
     result = run_prefppo(out, *PENDULUM, "--ground-truth-reward", "--unsup-update-epochs", "3")
