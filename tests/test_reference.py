@@ -366,6 +366,35 @@ def test_compare_logs_sets_the_diagnostics_of_both_side_by_side(tmp_path):
     assert rows[0][1:3] == ["0.2", "0.06"] and rows[1][1:3] == ["9", "0.5"]
 
 
+def test_compare_logs_sets_prefppo_returns_and_reward_correlations_side_by_side(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    for name, exp_name, correlation in (("ours", "prefppo", 0.7), ("pebble", "pebble", 0.1)):  # pebble: left out
+        run = tmp_path / name
+        run.mkdir()
+        (run / "config.json").write_text(json.dumps({"teacher": "oracle", "exp_name": exp_name}))
+        writer = SummaryWriter(str(run))
+        writer.add_scalar("charts/episodic_return", 100.0, 32000)
+        writer.add_scalar("reward/rollout_correlation", correlation, 48000)
+        writer.add_scalar("reward/rollout_correlation", correlation + 0.1, 64000)
+        writer.close()
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    (ref / "config.json").write_text(json.dumps({"teacher": "oracle", "implementation": "reference",
+                                                 "episode_returns": "training"}))
+    (ref / "eval.csv").write_text("step,episode_return\n32000,80\n64000,90\n")
+    (ref / "rollouts.csv").write_text("step,correlation,learned_mean\n48000,0.6,0\n64000,0.65,0\n")
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks/reference/compare_logs.py"), str(tmp_path),
+                             "--algorithm", "prefppo", "--window", "64000"], capture_output=True, text=True, env=ENV)
+    assert result.returncode == 0, result.stderr
+    assert "runs: {'ours': 1, 'reference': 1}" in result.stdout
+    header = next(line for line in result.stdout.splitlines() if line.startswith("| steps"))
+    assert header.rstrip(" |").split(" | ")[1:] == ["train_return (ours)", "train_return (reference)",
+                                        "rollout_correlation (ours)", "rollout_correlation (reference)"]
+    row = next(line for line in result.stdout.splitlines() if line.startswith("| 1-64000"))
+    assert row.rstrip(" |").split(" | ")[1:] == ["100", "85", "0.75", "0.625"]
+
+
 def test_reward_learning_check_splits_the_sessions_and_judges_a_perfect_reward_perfectly(tmp_path):
     import reward_learning
 

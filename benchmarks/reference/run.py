@@ -20,7 +20,8 @@ rows are the true returns of its stochastic training episodes, from its Monitor 
 (its envs step in lockstep, so with fixed-length episodes every env ends one at the same step), mean and std over the
 wave, wall time from the Monitor's clock; config.json says "episode_returns": "training", and experiments/report.py
 then compares prefppo.py's training episodes (charts/episodic_return) in the same way. final_model.pt holds its
-reward models only.
+reward models only. It runs through trace_prefppo.py, which adds rollouts.csv: the correlation of the reference's
+learned reward with the true one over each rollout (prefppo.py's reward/rollout_correlation).
 """
 
 import csv
@@ -354,8 +355,11 @@ def main(args: Args) -> int:
     (out / "config.json").write_text(json.dumps(our_config(args, command), indent=2))
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONWARNINGS="ignore")
     start, wall_times = time.time(), []
-    print(f"reference: {python} {' '.join(command)}", flush=True)
-    process = subprocess.Popen([str(python), *command], cwd=tree, env=env, stdout=subprocess.PIPE,
+    launch = command
+    if args.algorithm == "prefppo":  # its r_hat against the true reward per rollout, as prefppo.py logs it
+        launch = [str(HERE / "trace_prefppo.py"), "--trace-out", str((out / "rollouts.csv").resolve()), *command[1:]]
+    print(f"reference: {python} {' '.join(launch)}", flush=True)
+    process = subprocess.Popen([str(python), *launch], cwd=tree, env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.STDOUT, text=True)
     signal.signal(signal.SIGTERM, lambda signum, frame: process.terminate())  # a grid's stop: end the reference too
     try:

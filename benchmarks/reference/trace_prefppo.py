@@ -78,6 +78,6 @@ if __name__ == "__main__":
         sys.exit("usage: trace_prefppo.py --trace-out FILE.csv [train_PrefPPO.py's flags]")
     trace = sys.argv[2]
     sys.argv = ["train_PrefPPO.py", *sys.argv[3:]]
-    sys.path.insert(0, ".")
+    sys.path[0] = "."  # the reference's tree (the working directory), in place of this script's folder
     install(trace)
     runpy.run_path("train_PrefPPO.py", run_name="__main__")
