@@ -9,10 +9,21 @@ which segment it prefers. Every irrationality of the paper is a field, so they c
 
 `y[i]` is the weight on the second segment: 0.0 = first preferred, 1.0 = second preferred,
 0.5 = equally preferable; `keep[i]` is False where the teacher skipped the query (y is NaN there).
+A person is a teacher too: make_teacher("human", run_dir=...) has the same label(...) call; it
+writes each session's queries where label_server.py shows them and waits for the answers. This
+module also owns the files of labels and of a person's sessions: one format, one reader, one
+writer for pebble.py, prefppo.py, label_server.py and fit_teacher.py.
 Arrays in, arrays out: no torch and no environment in this module.
 """
 
+import glob
+import io
+import json
 import math
+import os
+import signal
+import time
+import zipfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,8 +88,10 @@ class SimTeacher:
                 setattr(self, name, value)
         self.rng.bit_generator.state = state["rng"]
 
-    def label(self, rewards0: np.ndarray, rewards1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Algorithm 1 on N queries at once: true rewards (N, H) of both segments -> (y, keep)."""
+    def label(self, rewards0: np.ndarray, rewards1: np.ndarray, queries: dict | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Algorithm 1 on N queries at once: true rewards (N, H) of both segments -> (y, keep).
+        `queries` (what a person needs to watch the segments, HumanTeacher) is not used."""
         rewards0 = np.asarray(rewards0, dtype=np.float64)
         rewards1 = np.asarray(rewards1, dtype=np.float64)
         if rewards0.ndim != 2 or rewards0.shape != rewards1.shape:
@@ -131,8 +144,11 @@ TEACHERS: dict[str, dict[str, float]] = {
 """The six teachers of the paper (Section 3.3): name -> the fields that differ from the oracle."""
 
 
-def make_teacher(name: str, seed: int | None = None, **overrides: float) -> SimTeacher:
-    """A preset of TEACHERS with any field overridden, e.g. make_teacher("myopic", eps_mistake=0.1)."""
+def make_teacher(name: str, seed: int | None = None, run_dir: str = "", **overrides: float):
+    """A preset of TEACHERS with any field overridden, e.g. make_teacher("myopic", eps_mistake=0.1);
+    "human": a person who answers in label_server.py's page for the run in run_dir."""
+    if name == "human":
+        return HumanTeacher(run_dir)
     if name not in TEACHERS:
         raise ValueError(f"unknown teacher {name!r}: choose one of {', '.join(TEACHERS)}")
     fields = {"beta", "gamma", "eps_mistake", "eps_skip", "eps_equal"}
@@ -140,3 +156,166 @@ def make_teacher(name: str, seed: int | None = None, **overrides: float) -> SimT
     if unknown:
         raise ValueError(f"unknown teacher field(s) {sorted(unknown)}: choose from {sorted(fields)}")
     return SimTeacher(**{**TEACHERS[name], **overrides}, seed=seed)
+
+
+# Files: written whole to a temporary file, then renamed, so that a kill never leaves half a file
+def save_file(path: str, data: bytes) -> None:
+    """`data` to `path`, flushed to disk first: a kill during the write leaves the old file."""
+    try:
+        with open(f"{path}.tmp", "wb") as f:
+            f.write(data)
+            os.fsync(f.fileno())
+        os.replace(f"{path}.tmp", path)
+    finally:
+        if os.path.exists(f"{path}.tmp"):
+            os.remove(f"{path}.tmp")
+
+
+def save_npz(path: str, **arrays) -> None:
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    data = io.BytesIO()
+    np.savez(data, **arrays)
+    save_file(path, data.getvalue())
+
+
+# Label files: <run>/labels/session_NNNN.npz, one a feedback session, with the session's step, y and
+# keep (as label() returns them), threshold_scale (H / T * R_avg, the unit of the adaptive
+# thresholds) and the queried segments: obs0, actions0, rewards0 (N, H, ...), episode0, start0
+# (where each was cut from the query pool), the same for side 1
+LABEL_KEYS = ("rewards0", "rewards1", "y", "keep")
+
+
+def save_labels(run_dir: str, session: int, **arrays) -> None:
+    save_npz(os.path.join(run_dir, "labels", f"session_{session:04d}.npz"), **arrays)
+
+
+def label_files(path: str) -> list[str]:
+    """The label files of a run directory, of its labels/ directory, or one .npz file."""
+    if os.path.isfile(path):
+        return [path]
+    return sorted(glob.glob(os.path.join(path, "labels", "session_*.npz"))
+                  or glob.glob(os.path.join(path, "session_*.npz")))
+
+
+def load_labels(path: str) -> list[dict]:
+    """Every session of `path` (label_files) as a dict of arrays, threshold_scale as a float (None
+    when a file lacks it); ValueError naming the file for a missing or malformed one."""
+    files = label_files(path)
+    if not files:
+        raise ValueError(f"{path!r}: no label files (session_*.npz in it or in its labels/)")
+    sessions = []
+    for file in files:
+        if not zipfile.is_zipfile(file):
+            raise ValueError(f"{file}: not an .npz file")
+        try:
+            with np.load(file) as data:
+                session = {key: data[key] for key in data.files}
+        except (OSError, EOFError, ValueError, zipfile.BadZipFile) as error:
+            raise ValueError(f"{file}: not a readable .npz ({error})") from None
+        if missing := [key for key in LABEL_KEYS if key not in session]:
+            raise ValueError(f"{file}: no {', '.join(missing)} in it")
+        shapes = [session[key].shape for key in LABEL_KEYS]
+        if not (len(shapes[0]) == 2 and shapes[0] == shapes[1]
+                and shapes[2] == shapes[3] == shapes[0][:1]):
+            raise ValueError(f"{file}: rewards0, rewards1 must be (N, H) and y, keep (N,); got "
+                             f"shapes {', '.join(map(str, shapes))}")
+        scale = session.get("threshold_scale")
+        if scale is not None and scale.size != 1:
+            raise ValueError(f"{file}: threshold_scale must be one number, got shape {scale.shape}")
+        session["threshold_scale"] = None if scale is None else float(scale)
+        sessions.append(session)
+    if len({s["rewards0"].shape[1] for s in sessions}) > 1:
+        lengths = sorted({s["rewards0"].shape[1] for s in sessions})
+        raise ValueError(f"{path!r}: sessions of different segment lengths {lengths}")
+    return sessions
+
+
+def set_labels_aside(run_dir: str, sessions_done: int, step: int) -> None:
+    """--resume from step N: the label files of later sessions go to labels/before_resume_at_step_N
+    (the run asks those sessions again)."""
+    kept_dir = os.path.join(run_dir, "labels", f"before_resume_at_step_{step}")
+    for path in label_files(run_dir)[sessions_done:]:
+        os.makedirs(kept_dir, exist_ok=True)
+        os.replace(path, os.path.join(kept_dir, os.path.basename(path)))
+
+
+# A person's sessions: <run>/queries/session_NNNN.npz holds the step and, for side 0 (left) and 1
+# (right), each query's episode reset seed (seed0), segment start (start0) and that episode's
+# actions (actions0, N x steps x action dim): label_server.py replays the segment from them. The
+# answers go to session_NNNN_answers.json: {"order": [query ids as answered], "answers": {"id":
+# "left" | "right" | "equal" | "skip"}}
+ANSWER_LABELS = {"left": 0.0, "right": 1.0, "equal": 0.5, "skip": math.nan}
+
+
+def queries_path(run_dir: str, session: int, suffix: str = ".npz") -> str:
+    return os.path.join(run_dir, "queries", f"session_{session:04d}{suffix}")
+
+
+def load_queries(path: str) -> dict:
+    """A session's queries file as arrays; ValueError when its sides do not fit together."""
+    with np.load(path) as data:
+        queries = {key: data[key] for key in data.files}
+    n = len(queries["seed0"])
+    for side in (0, 1):
+        lengths = {len(queries[f"{key}{side}"]) for key in ("seed", "start", "actions")}
+        if lengths != {n}:
+            raise ValueError(f"{path}: seed, start and actions of side {side} differ in length")
+    return queries
+
+
+def read_answers(run_dir: str, session: int) -> dict:
+    path = queries_path(run_dir, session, "_answers.json")
+    if not os.path.exists(path):
+        return {"order": [], "answers": {}}
+    with open(path) as f:
+        return json.load(f)
+
+
+def write_answers(run_dir: str, session: int, answers: dict) -> None:
+    save_file(queries_path(run_dir, session, "_answers.json"), json.dumps(answers).encode())
+
+
+@dataclass
+class HumanTeacher:
+    """A person as the teacher: label() writes the session's queries for label_server.py and waits
+    until the page has answered each one."""
+
+    run_dir: str
+    """the run's directory (its queries/ is where label_server.py looks)"""
+    session: int = 0
+    """the next session's number"""
+
+    def set_thresholds(self, mean_return: float, segment_len: int, episode_len: int) -> None:
+        """A person has no thresholds: they skip or call a pair equal as they see it."""
+
+    def state_dict(self) -> dict:
+        return {"session": self.session}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.session = state["session"]
+
+    def label(self, rewards0: np.ndarray, rewards1: np.ndarray, queries: dict | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(y, keep) as SimTeacher.label's, from a person's answers to `queries` (the layout of the
+        queries file; the rewards are not shown). A session asked again (after --resume) keeps the
+        answers already given."""
+        n = len(rewards0)
+        save_npz(queries_path(self.run_dir, self.session), **queries)
+        print(f"step {queries['step']}: {n} queries wait for a person: python label_server.py "
+              f"{self.run_dir} and open http://127.0.0.1:8000 (stopping the run now loses nothing: "
+              "--resume asks this session again, with the answers given)", flush=True)
+        # While it waits, SIGTERM or SIGINT end the run at once (its checkpoint is written)
+        handlers = {signum: signal.signal(signum, signal.SIG_DFL)
+                    for signum in (signal.SIGTERM, signal.SIGINT)}
+        answers = {}
+        while len(answers) < n:
+            time.sleep(1)
+            try:
+                answers = read_answers(self.run_dir, self.session)["answers"]
+            except (OSError, ValueError, KeyError):  # being written
+                answers = {}
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+        self.session += 1
+        y = np.array([ANSWER_LABELS[answers[str(i)]] for i in range(n)])
+        return y, ~np.isnan(y)
