@@ -629,13 +629,20 @@ RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track"
 RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's to check
     (("seed", "seed_steps", "unsup_steps", "checkpoint_every", "buffer_size",
       "query_recent_episodes", "critic_reset_updates"), lambda v: v >= 0, ">= 0"),
-    (("max_feedback", "feedback_every", "hidden_dim", "num_layers", "batch_size", "eval_every",
+    (("max_feedback", "feedback_per_session", "feedback_every", "hidden_dim", "num_layers", "batch_size", "eval_every",
       "eval_episodes", "knn_k", "reward_ensemble_size", "reward_batch_size", "reward_epochs",
       "candidate_multiplier", "target_update_every"), lambda v: v >= 1, ">= 1"),
     (("learning_rate", "alpha_lr", "reward_lr", "init_temperature"), lambda v: v > 0, "> 0"),
     (("gamma", "tau"), lambda v: 0 < v <= 1, "in (0, 1]"),
     (("label_smoothing",), lambda v: 0 <= v < 1, "in [0, 1)"),
 ]
+
+
+def task_defaults(env_id: str, teacher: str) -> Args:
+    """Args with the task's preset and the teacher's fields (sim_teacher.TEACHERS)."""
+    preset = PRESETS.get(env_id.removesuffix("-v3")) or PRESETS.get(env_kind(env_id), {})
+    teacher_fields = {f"teacher_{k}": v for k, v in TEACHERS.get(teacher, {}).items()}
+    return Args(env_id=env_id, **preset, **teacher_fields)
 
 
 def parse_args() -> Args:
@@ -645,9 +652,7 @@ def parse_args() -> Args:
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
     given = pre.parse_known_args()[0]
-    env_id = given.env_id or Args.env_id
-    default = Args(env_id=env_id, **PRESETS.get(env_id) or PRESETS.get(env_kind(env_id), {}),
-                   **{f"teacher_{k}": v for k, v in TEACHERS.get(given.teacher, {}).items()})
+    default = task_defaults(given.env_id or Args.env_id, given.teacher)
     if given.resume:
         try:
             with open(os.path.join(given.resume, "config.json")) as f:
@@ -807,12 +812,12 @@ class Progress:
 
 if __name__ == "__main__":
     args = parse_args()
-    sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
     try:
         env, episode_len = make_env(args.env_id)
         eval_env, _ = make_env(args.env_id, "rgb_array" if args.capture_video else None)
         check_args(args, episode_len)
+        sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
         teacher_fields = {k.removeprefix("teacher_"): v for k, v in asdict(args).items()
                           if k.startswith("teacher_")}
         teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, **teacher_fields)
@@ -963,7 +968,7 @@ if __name__ == "__main__":
                                     actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
                 if (global_step - args.seed_steps) % args.target_update_every == 0:
                     soft_update(critic, critic_target, args.tau)
-                if global_step % 1000 == 0:
+                if global_step % 100 == 0:
                     for name, value in losses.items():
                         writer.add_scalar(f"losses/{name}", value, global_step)
                     if not all(map(math.isfinite, losses.values())):

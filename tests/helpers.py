@@ -1,6 +1,5 @@
 """Running pebble.py / prefppo.py as a user would, and reading what a run wrote."""
 
-import ast
 import csv
 import os
 import re
@@ -20,11 +19,41 @@ def run_script(script: str, out: Path, *flags: str, timeout: int = 600, env: dic
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV | (env or {}), cwd=ROOT)
 
 
-def finished_counts(stdout: str) -> dict:
-    """The counters of the final 'done: {...}' line."""
-    match = re.search(r"^done: (\{.*?\})", stdout, re.M)
-    assert match, stdout[-2000:]
-    return ast.literal_eval(match.group(1))
+def scalars(out: Path) -> dict[str, list[tuple[int, float]]]:
+    """The run's TensorBoard scalars: tag -> [(step, value), ...]."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(out), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def assert_pebble_phases(out: Path, seed_steps: int, first_session: int, total: int, critic_reset_updates: int = 100):
+    """What a pebble.py run wrote proves each phase: SAC updates on the kNN reward during pre-training (logged
+    losses, the normalised kNN reward positive), then on r_hat (in (-1, 1)); the critic reset once, at the first
+    reward update (the critics' Adam counts exactly the updates since then); every stored transition relabelled
+    with the final r_hat (pre-training's zeros included)."""
+    import torch
+
+    import pebble
+
+    rewards = scalars(out)["losses/batch_reward"]
+    pretraining = [value for step, value in rewards if seed_steps < step < first_session]
+    learned = [value for step, value in rewards if step > first_session]
+    assert pretraining and all(value > 0 for value in pretraining), rewards
+    assert learned and all(-1 < value < 1 for value in learned), rewards
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert state["progress"]["global_step"] == total
+    adam_steps = {int(s["step"]) for s in state["critic_optimizer"]["state"].values()}
+    assert adam_steps == {total - first_session + 1 + critic_reset_updates}
+    buffer = state["buffer"]
+    members = len({key.split(".")[1] for key in state["reward_model"] if key.startswith("members.")})
+    reward_model = pebble.RewardEnsemble(buffer["obs"].shape[1], buffer["actions"].shape[1], members)
+    reward_model.load_state_dict(state["reward_model"])
+    with torch.no_grad():
+        r_hat = reward_model(torch.cat([buffer["obs"], buffer["actions"]], -1)).mean(0)
+    torch.testing.assert_close(buffer["rewards"], r_hat)
+    return state
 
 
 def session_lines(stdout: str) -> list[str]:
