@@ -656,9 +656,12 @@ def parse_args() -> Args:
     if given.resume:
         try:
             with open(os.path.join(given.resume, "config.json")) as f:
-                default = Args(**json.load(f))
-        except (OSError, ValueError, TypeError) as error:
-            fail(f"--resume {given.resume!r}: no configuration of this script there ({error})")
+                saved = json.load(f)
+        except (OSError, ValueError) as error:
+            fail(f"--resume {given.resume!r}: no config.json there ({error})")
+        if set(saved) != {f.name for f in fields(Args)}:
+            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
+        default = Args(**saved)
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
@@ -759,6 +762,12 @@ def restore(parts: dict, state: dict, device):
             part.update({key: value.to(device) for key, value in state[name].items()})
         else:
             part.extend(state[name])
+
+
+def check_finite(losses: dict):
+    """A NaN or infinity stops the run before a checkpoint could hold it."""
+    if bad := [name for name, value in losses.items() if not math.isfinite(value)]:
+        raise FloatingPointError(f"non-finite {', '.join(bad)}")
 
 
 def save_checkpoint(path: str, parts: dict):
@@ -887,6 +896,7 @@ if __name__ == "__main__":
     checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
     if args.resume:
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
+        print(f"resuming from the checkpoint at step {progress.global_step}")
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {args.output_dir!r} has already finished")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
@@ -971,8 +981,7 @@ if __name__ == "__main__":
                 if global_step % 100 == 0:
                     for name, value in losses.items():
                         writer.add_scalar(f"losses/{name}", value, global_step)
-                    if not all(map(math.isfinite, losses.values())):
-                        raise FloatingPointError(f"non-finite losses {losses}")
+                    check_finite(losses)
 
             progress.global_step = global_step
             if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
@@ -980,8 +989,7 @@ if __name__ == "__main__":
                            device)
             if (args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop
                     or global_step == args.total_timesteps):
-                if not all(map(math.isfinite, losses.values())):
-                    raise FloatingPointError(f"non-finite losses {losses}")
+                check_finite(losses)
                 save_checkpoint(checkpoint_path, parts)
             if stop:
                 print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 import pebble
-import prefppo
-from tests.helpers import ROOT, ENV, eval_curve, eval_rows, finished_counts, run_script, saved_labels, start_script, wait_for
+import sim_teacher
+from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_script, saved_labels, start_script, wait_for
 
 # Tiny walker-walk runs. pebble: sessions at 1101, 1601, 2101, 2601, checkpoints at 1300 (mid-episode)
 # and 2600; prefppo: sessions at 2000, 3000, 4000, checkpoints after the rollouts ending at 2000 and 4000
@@ -94,8 +94,8 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path
     assert_same_run(out, uninterrupted[script])  # --checkpoint-every changes nothing in the experiment
 
 
-@pytest.mark.parametrize("module", [pebble, prefppo])
-def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(module, tmp_path):
+def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(tmp_path):
+    module = sim_teacher  # save_file: every file a run writes
     path = tmp_path / "checkpoint.pt"
     data = io.BytesIO()
     torch.save({"step": 1, "weights": torch.ones(10)}, data)
@@ -149,9 +149,8 @@ def test_labels_from_an_earlier_run_join_the_preference_dataset(script, tmp_path
     result = run_script(script, tmp_path / "run", *flags, "--labels-from", str(uninterrupted[script]))
     assert result.returncode == 0, result.stderr[-3000:]
     imported = sum(int(session["keep"].sum()) for session in saved_labels(uninterrupted[script]))
-    assert f"--labels-from: {imported} labels from" in result.stdout
     assert f"reward model trained on {imported + 10} labels" in result.stdout  # + the 10 of this run's session
-    assert finished_counts(result.stdout)
+    assert result.stdout.splitlines()[-1].startswith("done: 1 feedback sessions")
     assert len(saved_labels(tmp_path / "run")) == 1  # only this run's own session is saved as its labels
 
 
@@ -182,10 +181,8 @@ def test_a_diverging_loss_stops_the_run_before_the_next_checkpoint(tmp_path):
                         "100")
     assert result.returncode == 3 and "Traceback" not in result.stderr
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and re.match(r"error: non-finite critic_loss \((inf|nan)\) at step 300;", lines[0]), lines
-    assert f"its last checkpoint is intact in {out}/checkpoint.pt" in lines[0]
-    assert "the state at the failure is in" in lines[0]
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=True)["progress"]["global_step"] == 300
+    assert len(lines) == 1 and re.match(r"error: non-finite critic_loss.* at step 300;", lines[0]), lines
+    assert f"its last checkpoint in {out} is intact" in lines[0]
     good = torch.load(out / "checkpoint.pt", weights_only=True)
     assert good["progress"]["global_step"] == 200
     for name in ("actor", "critic"):
@@ -196,16 +193,15 @@ def test_a_diverging_loss_stops_the_run_before_the_next_checkpoint(tmp_path):
 def test_a_nan_from_the_environment_stops_the_run(script, flags, tmp_path):
     result = run_script(script, tmp_path / "run", "--env-id", "tests.toy_envs:NaNReward-v0", *flags)
     assert result.returncode == 3 and "Traceback" not in result.stderr
-    assert "error: non-finite reward (nan) or observation from the environment at step" in result.stderr
-    assert (tmp_path / "run" / "checkpoint_nonfinite.pt").exists()
+    assert "error: non-finite reward or observation from the environment at step" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
 
 
 def prefppo_stopped_by(env_id: str, checkpoint_every: int, out) -> subprocess.CompletedProcess:
     result = run_script("prefppo.py", out, "--env-id", env_id, *TOY_PPO, "--checkpoint-every", str(checkpoint_every))
     assert result.returncode == 3 and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
-    assert f"its last checkpoint is intact in {out}/checkpoint.pt" in result.stderr
-    assert f"the state at the failure is in {out}/checkpoint_nonfinite.pt" in result.stderr
+    assert f"its last checkpoint in {out} is intact" in result.stderr
     return result
 
 
@@ -214,13 +210,11 @@ def test_prefppo_diverging_loss_keeps_the_last_good_checkpoint(tmp_path):
     # reward 1e30, overflows the value loss
     out = tmp_path / "run"
     result = prefppo_stopped_by("tests.toy_envs:HugeReward-v0", 80, out)
-    assert re.match(r"error: non-finite (policy|value)_loss \((inf|nan)\) at step 160;", result.stderr), result.stderr
-    assert result.stdout.count("checkpoint.pt saved") == 1
+    assert re.match(r"error: non-finite .*(policy|value)_loss.* at step 160;", result.stderr), result.stderr
     good = torch.load(out / "checkpoint.pt", weights_only=True)
     assert good["progress"]["global_step"] == 80  # untouched, and finite: checked before it was saved
     for name in ("actor", "critic"):
         assert all(torch.isfinite(t).all() for t in good[name].values())
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=True)["progress"]["global_step"] == 160
 
 
 def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
@@ -228,9 +222,8 @@ def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
     # the checkpoint at 240; the envs have moved past 240, so checkpoint.pt must stay the one of step 240
     out = tmp_path / "run"
     result = prefppo_stopped_by("tests.toy_envs:NaNSeededEpisode-v0", 240, out)
-    assert result.stderr.startswith("error: non-finite reward (nan) or observation from the environment at step 320;")
+    assert result.stderr.startswith("error: non-finite reward or observation from the environment at step 320;")
     assert torch.load(out / "checkpoint.pt", weights_only=True)["progress"]["global_step"] == 240
-    assert torch.load(out / "checkpoint_nonfinite.pt", weights_only=True)["progress"]["global_step"] == 320
     # the last good checkpoint resumes: the envs replay their episodes and meet the NaN at the same step again
     resumed = run_script("prefppo.py", out, "--resume", str(out))
     assert resumed.returncode == 3 and "resuming from the checkpoint at step 240" in resumed.stdout
@@ -242,29 +235,33 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
     blocker = tmp_path / "a_file"
     blocker.write_text("not a directory")
     result = run_script(script, blocker / "run", *RUNS[script])
-    assert result.returncode == 2 and result.stderr.startswith("error: cannot write to --output-dir")
-    assert len(result.stderr.strip().splitlines()) == 1
+    assert result.returncode == 2 and result.stderr.startswith("error: [Errno 20] Not a directory")
+    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
 
     existing = uninterrupted[script]
     before = {p: p.stat().st_mtime_ns for p in existing.rglob("*")}
     result = run_script(script, existing, *RUNS[script])
-    assert result.returncode == 2 and "already holds a run; continue it with --resume" in result.stderr
+    assert result.returncode == 2 and "already holds a run" in result.stderr
     assert {p: p.stat().st_mtime_ns for p in existing.rglob("*")} == before
 
     result = run_script(script, tmp_path / "x", "--resume", str(existing), "--seed", "7")
     assert result.returncode == 2 and "error: --seed cannot change when resuming" in result.stderr
     result = run_script(script, tmp_path / "x", "--resume", str(tmp_path))
+    assert result.returncode == 2 and "no config.json there" in result.stderr
+    stopped = tmp_path / "stopped"  # a run stopped before its first checkpoint
+    stopped.mkdir()
+    (stopped / "config.json").write_text((existing / "config.json").read_text())
+    result = run_script(script, tmp_path / "x", "--resume", str(stopped))
     assert result.returncode == 2 and "no checkpoint.pt there" in result.stderr
-    if script == "pebble.py":  # a run of an older pebble.py, saved before --alpha-lr existed
-        older = tmp_path / "older"
-        older.mkdir()
-        (older / "checkpoint.pt").write_bytes(b"")
-        config = json.loads((existing / "config.json").read_text())
-        del config["alpha_lr"]
-        (older / "config.json").write_text(json.dumps(config))
-        result = run_script(script, tmp_path / "x", "--resume", str(older))
-        assert result.returncode == 2 and "Traceback" not in result.stderr
-        assert "its config.json has no alpha_lr (written by an older pebble.py" in result.stderr
+    older = tmp_path / "older"  # a run of an older version, without a field it has now
+    older.mkdir()
+    (older / "checkpoint.pt").write_bytes(b"")
+    config = json.loads((existing / "config.json").read_text())
+    del config["total_timesteps"]
+    (older / "config.json").write_text(json.dumps(config))
+    result = run_script(script, tmp_path / "x", "--resume", str(older))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "its config.json is of another version of this script" in result.stderr
 
 
 def limit_file_size():
@@ -278,8 +275,8 @@ def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_pa
     out = tmp_path / "run"
     process = start_script(script, out, *RUNS[script], preexec_fn=limit_file_size)
     stdout, stderr = process.communicate(timeout=300)
-    assert process.returncode == 1 and "Traceback" not in stderr
+    assert process.returncode == 3 and "Traceback" not in stderr
     lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and "failed at step" in lines[0] and "the last checkpoint there is intact" in lines[0]
+    assert len(lines) == 1 and "File too large" in lines[0] and f"its last checkpoint in {out} is intact" in lines[0]
     assert not (out / "checkpoint.pt").exists() and not (out / "checkpoint.pt.tmp").exists()
     assert eval_rows(out)  # what was written before is there
