@@ -22,12 +22,10 @@ teacher is sure and only a mistake flips the label. gamma matters only where rew
 segments. beta is per unit of return: it carries over to the same task only (gamma, eps: any task).
 """
 
-import glob
 import json
 import math
 import os
 import sys
-import zipfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +34,7 @@ from scipy.optimize import minimize
 from scipy.special import log_expit
 from scipy.stats import chi2
 
+import sim_teacher
 from sim_teacher import SimTeacher
 
 MIN_STRICT = 20  # strict labels (0 or 1) below which beta, gamma and eps_mistake are not estimable
@@ -81,43 +80,13 @@ class Args:
 
 def load_labels(path: str) -> dict:
     """Every session's rewards0, rewards1 (N, H), y, keep (N,) and threshold_scale (N,: each pair's
-    session scale; None when a file lacks it). ValueError for missing or malformed files."""
-    files = [path] if os.path.isfile(path) else sorted(
-        glob.glob(os.path.join(path, "labels", "session_*.npz"))
-        or glob.glob(os.path.join(path, "session_*.npz")))
-    if not files:
-        raise ValueError(f"{path!r}: no label files (session_*.npz in it or in its labels/)")
-    sessions = []
-    for file in files:
-        if not zipfile.is_zipfile(file):
-            raise ValueError(f"{file}: not an .npz file")
-        try:
-            with np.load(file) as data:
-                session = {key: data[key] for key in data.files if key in (
-                    "rewards0", "rewards1", "y", "keep", "threshold_scale")}
-        except (OSError, EOFError, ValueError, zipfile.BadZipFile) as error:
-            raise ValueError(f"{file}: not a readable .npz ({error})") from None
-        missing = [key for key in ("rewards0", "rewards1", "y", "keep") if key not in session]
-        if missing:
-            raise ValueError(f"{file}: no {', '.join(missing)} in it")
-        shapes = [session[key].shape for key in ("rewards0", "rewards1", "y", "keep")]
-        if not (len(shapes[0]) == 2 and shapes[0] == shapes[1]
-                and shapes[2] == shapes[3] == shapes[0][:1]):
-            raise ValueError(f"{file}: rewards0, rewards1 must be (N, H) and y, keep (N,); got "
-                             f"shapes {', '.join(map(str, shapes))}")
-        scale = session.get("threshold_scale")
-        if scale is not None and scale.size != 1:
-            raise ValueError(f"{file}: threshold_scale must be one number, got shape {scale.shape}")
-        if scale is not None:
-            session["threshold_scale"] = np.full(len(session["y"]), float(scale))
-        sessions.append(session)
-    lengths = sorted({s["rewards0"].shape[1] for s in sessions})
-    if len(lengths) > 1:
-        raise ValueError(f"{path!r}: sessions of different segment lengths {lengths}")
-    data = {key: np.concatenate([s[key] for s in sessions])
-            for key in ("rewards0", "rewards1", "y", "keep")}
-    scales = [s.get("threshold_scale") for s in sessions]
-    data["threshold_scale"] = None if any(s is None for s in scales) else np.concatenate(scales)
+    session scale; None when a file lacks it), read by sim_teacher.load_labels (ValueError for
+    missing or malformed files)."""
+    sessions = sim_teacher.load_labels(path)
+    data = {key: np.concatenate([s[key] for s in sessions]) for key in sim_teacher.LABEL_KEYS}
+    scales = [s["threshold_scale"] for s in sessions]
+    data["threshold_scale"] = None if None in scales else np.concatenate(
+        [np.full(len(s["y"]), s["threshold_scale"]) for s in sessions])
     return data
 
 
@@ -128,7 +97,7 @@ def simulate(directory: str, teacher: SimTeacher, pairs: int = 1000, sessions: i
     its own scale (log-uniform over 1.5 decades: near-ties and clear pairs both occur), each segment
     a level and a linear trend (so the myopic discount matters), and the levels rise from session to
     session as a learning policy's. R_avg = the session's mean segment return * T / H."""
-    if glob.glob(os.path.join(directory, "labels", "session_*.npz")):
+    if sim_teacher.label_files(directory):
         raise ValueError(f"{directory!r} already holds label files: simulate into a new directory")
     rng = np.random.default_rng([seed, 23])  # a stream apart from a teacher's own default_rng(seed)
     os.makedirs(os.path.join(directory, "labels"), exist_ok=True)
@@ -146,9 +115,9 @@ def simulate(directory: str, teacher: SimTeacher, pairs: int = 1000, sessions: i
         mean_return = float(rewards.sum(2).mean()) * episode_len / segment_len
         teacher.set_thresholds(mean_return, segment_len, episode_len)
         y, keep = teacher.label(rewards[:, 0], rewards[:, 1])
-        np.savez(os.path.join(directory, "labels", f"session_{session:04d}.npz"), step=session, y=y,
-                 keep=keep, rewards0=rewards[:, 0], rewards1=rewards[:, 1],
-                 threshold_scale=segment_len / episode_len * mean_return)
+        sim_teacher.save_labels(directory, session, step=session, y=y, keep=keep,
+                                rewards0=rewards[:, 0], rewards1=rewards[:, 1],
+                                threshold_scale=segment_len / episode_len * mean_return)
 
 
 # -------------------------------------------------------------------------------------------------

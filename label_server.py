@@ -20,6 +20,7 @@ import tyro
 from PIL import Image
 
 import pebble
+import sim_teacher
 
 
 @dataclass
@@ -32,7 +33,7 @@ class Args:
     """port to listen on (0: any free port)"""
 
 
-LABELS = ("left", "right", "equal", "skip")  # y = 0, 1, 0.5, dropped
+LABELS = tuple(sim_teacher.ANSWER_LABELS)  # y = 0, 1, 0.5, dropped
 CLIP_HEIGHT = 160  # pixels: frames taller than this are scaled down
 SHEET_COLUMNS = 10  # frames a row in a clip's sprite sheet
 JPEG_QUALITY = 90
@@ -65,14 +66,10 @@ class Session:
 
 
 def load_session(path: str, number: int, segment_len: int) -> Session:
-    with np.load(path) as data:
-        session = Session(number, int(data["step"]), len(data["seed0"]),
-                          [data["seed0"], data["seed1"]], [data["start0"], data["start1"]],
-                          [data["actions0"], data["actions1"]])
+    data = sim_teacher.load_queries(path)
+    session = Session(number, int(data["step"]), len(data["seed0"]), [data["seed0"], data["seed1"]],
+                      [data["start0"], data["start1"]], [data["actions0"], data["actions1"]])
     for side in (0, 1):
-        lengths = (len(session.seeds[side]), len(session.starts[side]), len(session.actions[side]))
-        if lengths != (session.n,) * 3:
-            raise ValueError(f"{path}: seed, start and actions of side {side} differ in length")
         if np.any(session.starts[side] + segment_len > session.actions[side].shape[1]):
             raise ValueError(f"{path}: a segment of side {side} ends after its actions")
     return session
@@ -125,6 +122,7 @@ class LabelServer(http.server.ThreadingHTTPServer):
             config = json.load(f)
         self.env_id = config["env_id"]
         self.segment_len = int(config["segment_len"])
+        self.run_dir = run_dir
         self.queries_dir = os.path.join(run_dir, "queries")
         self.lock = threading.Lock()  # the answers files and the session read last
         self.loaded = None  # (number, the file's mtime, Session) of the session read last
@@ -157,7 +155,7 @@ class LabelServer(http.server.ThreadingHTTPServer):
 
     # Sessions and answers (call with self.lock held)
     def session_path(self, number: int, suffix: str = ".npz") -> str:
-        return os.path.join(self.queries_dir, f"session_{number:04d}{suffix}")
+        return sim_teacher.queries_path(self.run_dir, number, suffix)
 
     def session(self, number: int) -> Session:
         """The session's queries, read again if the run wrote the file again."""
@@ -168,14 +166,10 @@ class LabelServer(http.server.ThreadingHTTPServer):
         return self.loaded[2]
 
     def read_answers(self, number: int) -> dict:
-        path = self.session_path(number, "_answers.json")
-        if not os.path.exists(path):
-            return {"order": [], "answers": {}}
-        with open(path) as f:
-            return json.load(f)
+        return sim_teacher.read_answers(self.run_dir, number)
 
     def write_answers(self, number: int, answers: dict):
-        pebble.save_file(self.session_path(number, "_answers.json"), json.dumps(answers).encode())
+        sim_teacher.write_answers(self.run_dir, number, answers)
 
     def current(self) -> Session | None:
         """The newest session if it is not done (not every query answered). The run waits at one
@@ -287,7 +281,7 @@ class LabelServer(http.server.ThreadingHTTPServer):
             self.env, _ = pebble.make_env(self.env_id, render_mode="rgb_array")
         frames = replay_frames(self.env, seed, start, actions, self.segment_len)
         os.makedirs(os.path.dirname(path), exist_ok=True)
-        pebble.save_file(path, sprite_sheet(frames))
+        sim_teacher.save_file(path, sprite_sheet(frames))
 
 
 class Handler(http.server.BaseHTTPRequestHandler):

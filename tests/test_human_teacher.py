@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import pebble
-from tests.helpers import finished_counts, saved_labels, start_script
+from tests.helpers import saved_labels, start_script
 from tests.test_label_server import browser, click, pair_ready, press, text, wait_for  # noqa: F401 (a fixture)
 
 ANSWERS = ["left", "right", "equal", "skip"]
@@ -77,9 +77,8 @@ def test_a_person_s_answers_are_the_labels_the_run_learns_from(script, tmp_path)
         process.kill()
     assert process.returncode == 0, stderr
     assert "queries wait for a person: python label_server.py" in stdout
-    assert stdout.count("checkpoint.pt saved") >= 2  # one before each session
     labels = saved_labels(out)
-    assert len(labels) == 2 and finished_counts(stdout)["updates_on_learned_reward"] > 0
+    assert len(labels) == 2 and stdout.splitlines()[-1].startswith("done: 2 feedback sessions")
     for session, (saved, asked) in enumerate(zip(labels, queries)):
         given = ANSWERS if session == 0 else ANSWERS[::-1]
         np.testing.assert_array_equal(saved["keep"], [a != "skip" for a in given])
@@ -167,7 +166,7 @@ def test_a_person_labels_a_short_run_in_a_real_browser(tmp_path, browser):
             server.close()
     assert process.returncode == 0, stderr
     labels = saved_labels(out)
-    assert len(labels) == 2 and finished_counts(stdout)["relabels"] == 2
+    assert len(labels) == 2 and stdout.count("reward model trained on") == 2
     np.testing.assert_array_equal(labels[0]["keep"], [True, False, True])
     np.testing.assert_array_equal(labels[0]["y"][labels[0]["keep"]], [0.0, 0.5])
     np.testing.assert_array_equal(labels[1]["keep"], [True, True, True])

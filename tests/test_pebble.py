@@ -5,8 +5,6 @@ and bad input that must end with one line and a non-zero exit before any trainin
 import importlib
 import json
 import math
-import signal
-import threading
 import typing
 import warnings
 
@@ -18,7 +16,7 @@ import pebble
 from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes, session_steps
 from sim_teacher import TEACHERS, make_teacher
 from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_rejected, eval_curve, eval_rows,
-                           assert_pebble_phases, run_script, scalars, saved_labels, session_lines, start_script)
+                           assert_pebble_phases, run_script, scalars, saved_labels, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
         "--reward-batch-size", "32", "--eval-episodes", "1"]
