@@ -42,12 +42,11 @@ class Args:
     capture_video: bool = False
     """if toggled, record each evaluation's first episode to videos/"""
     compile: bool = False
-    """if toggled, torch.compile the PPO minibatch loss"""
+    """if toggled, torch.compile the PPO loss"""
     output_dir: str = ""
     """where the run's files go (default: runs/<run name>)"""
     checkpoint_every: int = 50000
-    """environment steps between checkpoints, after a rollout (0: only at the end, on SIGTERM and
-    SIGINT)"""
+    """environment steps between checkpoints (0: only at the end, on SIGTERM and SIGINT)"""
     resume: str = ""
     """continue the run in this directory from its checkpoint, with its configuration"""
     labels_from: str = ""
@@ -57,7 +56,7 @@ class Args:
     env_id: str = "walker-walk"
     """DMC domain-task, Meta-World v3 task (button-press), or Gymnasium id (module:id)"""
     total_timesteps: int = 4_000_000
-    """total environment steps (all environments together)"""
+    """total environment steps"""
     teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic", "human"] = "oracle"
     """simulated teacher (paper Section 3.3), or human: a person, in label_server.py's page"""
     teacher_beta: float = math.inf
@@ -84,7 +83,7 @@ class Args:
     segment_len: int = 50
     """length H of a queried segment"""
     unsup_steps: int = 32000
-    """unsupervised pre-training steps (kNN state entropy) at the start"""
+    """unsupervised pre-training steps (kNN state entropy)"""
     hidden_dim: int = 256
     """hidden units of the actor and critic"""
     num_layers: int = 3
@@ -96,9 +95,9 @@ class Args:
     num_steps: int = 500
     """rollout length per environment"""
     update_epochs: int = 20
-    """PPO epochs over each rollout after pre-training (reference code: n_epochs)"""
+    """PPO epochs over a rollout after pre-training"""
     unsup_update_epochs: int = 50
-    """PPO epochs over each rollout of pre-training (reference code: unsuper_n_epochs)"""
+    """PPO epochs over a rollout of pre-training"""
     minibatch_size: int = 64
     """PPO minibatch size"""
     gamma: float = 0.99
@@ -106,11 +105,11 @@ class Args:
     gae_lambda: float = 0.92
     """GAE lambda"""
     use_sde: bool = True
-    """generalized state-dependent exploration, gSDE (reference code: use_sde 1)"""
+    """generalized state-dependent exploration (gSDE), else a Gaussian"""
     sde_freq: int = 4
-    """gSDE: steps of each env between new exploration matrices"""
+    """steps between new gSDE exploration matrices"""
     clip_coef: float = 0.4
-    """initial PPO clip range, decayed linearly to 0 (reference code)"""
+    """initial PPO clip range, decayed linearly to 0"""
     ent_coef: float = 0.0
     """entropy bonus"""
     vf_coef: float = 0.5
@@ -118,7 +117,7 @@ class Args:
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
     eval_every: int = 50000
-    """environment steps between evaluations (after a rollout)"""
+    """environment steps between evaluations"""
     eval_episodes: int = 10
     """episodes per evaluation"""
     ground_truth_reward: bool = False
@@ -138,7 +137,7 @@ class Args:
     candidate_multiplier: int = 10
     """candidate pairs per query for the uncertainty and coverage samplers"""
     query_recent_episodes: int = 0
-    """segments come from the last N complete episodes (0: all, as the reference code)"""
+    """segments come from the last N complete episodes (0: all)"""
 
 
 # Paper appendix, PrefPPO's hyperparameters (Args: walker-walk's); reward_epochs: the reference
@@ -161,7 +160,7 @@ class DMCEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
-    def __init__(self, domain: str, task: str, render_mode: str | None = None):
+    def __init__(self, domain, task, render_mode=None):
         from dm_control import suite
 
         self.dmc = suite.load(domain, task)
@@ -199,7 +198,7 @@ class MetaWorldSeeding(gym.Wrapper):
         return self.env.reset(options=options)
 
 
-def env_kind(env_id: str) -> str:
+def env_kind(env_id):
     import metaworld
 
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display"
@@ -211,7 +210,7 @@ def env_kind(env_id: str) -> str:
     return "gym"
 
 
-def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]:
+def make_env(env_id, render_mode=None):
     """(env, episode length T): actions in [-1, 1], float32 observations, every reset seeded."""
     kind = env_kind(env_id)
     if kind == "dmc":
@@ -250,25 +249,25 @@ TRAIN_STREAM = 0  # episode seeds of the training and the evaluation env
 EVAL_STREAM = 1
 
 
-def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
+def numpy_seeds(seed):
     """Streams of the query sampler, the teacher and the seed steps' random actions."""
     return np.random.SeedSequence(seed).spawn(3)
 
 
-def episode_seed(run_seed: int, stream: int, episode: int) -> int:
+def episode_seed(run_seed, stream, episode):
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
 
 
 # Networks
-def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.Tanh):
+def mlp(in_dim, out_dim, hidden_dim, num_layers, activation=nn.Tanh):
     layers = []
     for i in range(num_layers):
         layers += [nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation()]
     return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
 
 
-def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
-    """Reference code (SB3's ActorCriticPolicy): orthogonal weights with this gain, zero biases."""
+def orthogonal_init(module, gain):
+    """Reference code (SB3's ActorCriticPolicy): orthogonal weights, zero biases."""
     for layer in module.modules():
         if isinstance(layer, nn.Linear):
             nn.init.orthogonal_(layer.weight, gain)
@@ -276,17 +275,17 @@ def orthogonal_init(module: nn.Module, gain: float) -> nn.Module:
     return module
 
 
-def sde_std(latent: torch.Tensor, log_std: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """gSDE's action std (SB3's StateDependentNoiseDistribution): of latent @ W, W_ij ~ N(0,
+def sde_std(latent, log_std, eps=1e-6):
+    """gSDE (SB3's StateDependentNoiseDistribution): the std of latent @ W, W_ij ~ N(0,
     exp(log_std_ij)^2)."""
     return torch.sqrt(latent**2 @ log_std.exp() ** 2 + eps)
 
 
 class Actor(nn.Module):
-    """SB3's PPO policy: a tanh MLP whose latent (last hidden features) feeds a linear mean; gSDE:
-    env n acts mean + latent @ W_n; else one log std per action."""
+    """SB3's PPO policy: a tanh MLP, its last hidden features (the latent) feed a linear mean; gSDE:
+    env n acts mean + latent @ W_n."""
 
-    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers, use_sde: bool):
+    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers, use_sde):
         super().__init__()
         self.policy = mlp(obs_dim, action_dim, hidden_dim, num_layers)
         orthogonal_init(self.policy, math.sqrt(2))
@@ -294,12 +293,9 @@ class Actor(nn.Module):
         self.use_sde = use_sde
         log_std_shape = (hidden_dim, action_dim) if use_sde else (action_dim,)
         self.log_std = nn.Parameter(torch.zeros(log_std_shape))
-        self.exploration = None  # gSDE: each env's W_n, (envs, hidden, action)
+        self.exploration = None  # gSDE: the W_n, (envs, hidden, action)
 
-    def mean(self, obs):
-        return self.policy(obs)
-
-    def distribution(self, obs) -> tuple[torch.distributions.Normal, torch.Tensor]:
+    def distribution(self, obs):
         latent = self.policy[:-1](obs)
         mean = self.policy[-1](latent)
         if self.use_sde:
@@ -308,9 +304,8 @@ class Actor(nn.Module):
             std = self.log_std.exp().expand_as(mean)
         return torch.distributions.Normal(mean, std, validate_args=False), latent
 
-    def sample(self, obs, step: int, sde_freq: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Actions and log-probabilities at step `step` of a rollout; gSDE draws new W_n every
-        sde_freq steps (reference code: collect_rollouts)."""
+    def sample(self, obs, step, sde_freq):
+        """Actions and log-probabilities at a rollout's step; new W_n every sde_freq steps."""
         distribution, latent = self.distribution(obs)
         if not self.use_sde:
             action = distribution.sample()
@@ -323,20 +318,19 @@ class Actor(nn.Module):
         return action, distribution.log_prob(action).sum(-1)
 
 
-def mean_policy(actor: Actor, obs_stats, device) -> callable:
+def mean_policy(actor, obs_stats, device):
     """The policy evaluated: an observation -> the mean action, clipped as the env clips it."""
-    return lambda obs: actor.mean(obs_stats.normalize(obs).to(device)).clamp(-1, 1)
+    return lambda obs: actor.policy(obs_stats.normalize(obs).to(device)).clamp(-1, 1)
 
 
-def make_critic(obs_dim: int, hidden_dim: int, num_layers: int) -> nn.Sequential:
-    """V(s): a tanh MLP of its own (reference code: separate pi and vf layers)."""
+def make_critic(obs_dim, hidden_dim, num_layers):
     critic = orthogonal_init(mlp(obs_dim, 1, hidden_dim, num_layers), math.sqrt(2))
     orthogonal_init(critic[-1], 1.0)
     return critic
 
 
-def reset_value_head(critic: nn.Sequential):
-    """Reference code (reset_value) after the first reward update: a new output layer only."""
+def reset_value_head(critic):
+    """Reference code (reset_value) after the first reward update: a new output layer."""
     orthogonal_init(critic[-1], 1.0)
 
 
@@ -357,7 +351,7 @@ class RewardEnsemble(nn.Module):
         centred = (obs_action - self.input_mean) / self.input_std
         return centred.clamp(-self.input_clip, self.input_clip)
 
-    def set_input_stats(self, states: torch.Tensor):
+    def set_input_stats(self, states):
         obs_dim = states.shape[-1]
         self.input_mean[:obs_dim] = states.mean(0)
         self.input_std[:obs_dim] = (states.var(0, unbiased=False) + 1e-8).sqrt()
@@ -369,25 +363,25 @@ class RewardEnsemble(nn.Module):
 
 
 # Algorithm
-def clip_range(clip_coef: float, global_step: int, total_timesteps: int) -> float:
-    """Reference code (SB3's linear_schedule): clip_coef, linearly down to 0 at the end."""
+def clip_range(clip_coef, global_step, total_timesteps):
+    """Reference code (SB3's linear_schedule): clip_coef, linearly down to 0."""
     return clip_coef * max(0.0, 1.0 - global_step / total_timesteps)
 
 
-def ppo_policy_loss(log_prob, old_log_prob, advantages, clip: float) -> tuple:
+def ppo_policy_loss(log_prob, old_log_prob, advantages, clip):
     """Appendix Eq. (4), PPO's clipped surrogate; (loss, ratio)."""
     ratio = (log_prob - old_log_prob).exp()
     clipped = ratio.clamp(1 - clip, 1 + clip)
     return torch.max(-advantages * ratio, -advantages * clipped).mean(), ratio
 
 
-def ppo_value_loss(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
-    """Appendix Eq. (5): MSE of V against the GAE returns, no clipping (reference code)."""
+def ppo_value_loss(values, returns):
+    """Appendix Eq. (5), unclipped (reference code)."""
     return F.mse_loss(values, returns)
 
 
-def optimize(optimizer, loss: torch.Tensor, max_grad_norm: float | None = None):
-    """A gradient step of this optimizer's parameters only, gradients clipped to max_grad_norm."""
+def optimize(optimizer, loss, max_grad_norm=None):
+    """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
     params = [param for group in optimizer.param_groups for param in group["params"]]
     loss.backward(inputs=params)
@@ -396,13 +390,12 @@ def optimize(optimizer, loss: torch.Tensor, max_grad_norm: float | None = None):
     optimizer.step()
 
 
-def adam(params, lr: float, eps: float = 1e-8) -> torch.optim.Adam:
+def adam(params, lr, eps=1e-8):
     return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
 
 
-def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args) -> tuple:
-    """Appendix Eqs. (4)-(5) on a minibatch, advantages normalised per minibatch; and its
-    statistics."""
+def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args):
+    """Appendix Eqs. (4)-(5) on a minibatch (advantages normalised in it), and its statistics."""
     distribution, _ = actor.distribution(obs)
     adv = advantages
     if len(obs) > 1:
@@ -418,9 +411,7 @@ def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, cli
 
 
 def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optimizer, epochs, clip,
-               args, loss_fn=ppo_loss) -> dict:
-    """`epochs` passes over the rollout in shuffled minibatches; the last minibatch's statistics,
-    the clip fraction over all."""
+               args, loss_fn=ppo_loss):
     clip_fractions = []
     for _ in range(epochs):
         order = torch.randperm(len(obs), device=obs.device)
@@ -434,8 +425,8 @@ def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optim
 
 
 def compute_gae(rewards, values, next_values, ends, terminated, gamma, gae_lambda):
-    """GAE over a (T, N) rollout; next_values[t]: V of the state step t reached. An episode's end
-    cuts the recursion; only a termination cuts the bootstrap (time limits are bootstrapped)."""
+    """GAE over a (steps, envs) rollout; next_values: V of the states reached. Time limits are
+    bootstrapped: only a termination drops V."""
     advantages = torch.zeros_like(rewards)
     last = torch.zeros_like(rewards[0])
     for t in reversed(range(len(rewards))):
@@ -445,7 +436,7 @@ def compute_gae(rewards, values, next_values, ends, terminated, gamma, gae_lambd
     return advantages, advantages + values
 
 
-def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
+def knn_distance(states, reference, k):
     """Eq. (8) without the log: distance to the k-th nearest neighbour other than the state."""
     distances = torch.cdist(states, reference)
     nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
@@ -454,13 +445,13 @@ def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch
 
 @dataclass
 class RunningMeanStd:
-    """Of numpy rows (Chan et al.'s parallel update), in float64 tensors."""
+    """Of numpy rows (Chan et al.'s parallel update), as float64 tensors."""
 
     mean: torch.Tensor
     var: torch.Tensor
     count: float = 1e-4
 
-    def update(self, x: np.ndarray):
+    def update(self, x):
         batch_mean = torch.from_numpy(x.mean(0))
         batch_var = torch.from_numpy(x.var(0))
         total = self.count + len(x)
@@ -471,47 +462,47 @@ class RunningMeanStd:
         self.var = m2 / total
         self.count = total
 
-    def normalize(self, x: np.ndarray) -> torch.Tensor:
-        """Reference code (VecNormalize): standardised, clipped to +-10."""
+    def normalize(self, x):
+        """Reference code (VecNormalize): clipped to +-10."""
         return ((torch.from_numpy(x) - self.mean) / (self.var + 1e-8).sqrt()).clamp(-10, 10).float()
 
 
 @dataclass
 class KnnStateEntropy(RunningMeanStd):
-    """Algorithm 2's r_int(s_t) among every pre-training state so far, this step's included
-    (reference code), over the running std of these distances."""
+    """Algorithm 2's r_int(s_t) among all pre-training states so far (reference code), over the
+    distances' running std."""
 
     k: int = 5
     states: torch.Tensor = None
 
-    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+    def __call__(self, states):
         self.states = torch.cat([self.states.to(states.device), states])
         distance = knn_distance(states, self.states, self.k)[:, 0]
         self.update(distance.cpu().numpy()[:, None])
         return distance / math.sqrt(self.var[0] + 1e-8)
 
 
-def coverage_features(inputs0: torch.Tensor, inputs1: torch.Tensor, obs_dim: int) -> np.ndarray:
+def coverage_features(inputs0, inputs1, obs_dim):
     """Appendix, coverage sampling: both segments' states, flattened and concatenated."""
     states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
     return torch.cat(states, 1).cpu().numpy()
 
 
-def preference_loss(segment_returns, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
+def preference_loss(segment_returns, y, label_smoothing=0.0):
     """Eq. (3): cross-entropy of P[sigma1 > sigma0] (Eq. (2)) against (1 - y, y)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
     log_probs = F.log_softmax(segment_returns, dim=-1)
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
-def preference_accuracy(segment_returns, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def preference_accuracy(segment_returns, y):
     """(correct, counted) over the strict labels."""
     strict = y != 0.5
     correct = (segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5)
     return (correct & strict).sum(), strict.sum()
 
 
-def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
+def train_reward(reward_model, optimizer, preferences, args):
     """Algorithm 3, reward learning: up to reward_epochs passes over D, until 97% accuracy."""
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
@@ -539,7 +530,7 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
     return loss, accuracy
 
 
-def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng) -> tuple:
+def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng):
     """SAMPLE() of Algorithm 3: `size` pairs of segments, chosen by the sampler among size x
     candidate_multiplier; the pairs' arrays and both segments' (obs, action) inputs."""
     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
@@ -566,7 +557,7 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
 
 
 def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
-                     reward_optimizer, teacher, rng, writer, episode_len) -> int:
+                     reward_optimizer, teacher, rng, writer, episode_len):
     """Algorithm 3's feedback session: queries, the teacher's labels (saved at once), D grows by
     the kept ones, r_hat learns on D. Returns the size of D."""
     sampler = args.sampler if progress.pretrained else "uniform"  # reference: the first uniform
@@ -609,46 +600,41 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
     return len(preferences["y"])
 
 
-def train_seed(args, progress, i: int) -> int:
-    """Env i's running episode: number episodes[i] * num_envs + i of the training stream."""
+def restart_env(env, args, progress, i):
+    """Env i at its running episode's step: reset with its seed (episode episodes[i] * num_envs + i
+    of the training stream), its actions again (MuJoCo is deterministic)."""
+    obs, _ = env.reset(seed=train_seed(args, progress, i))
+    for action in progress.running_episodes[i][1]:
+        obs = env.step(np.array(action, np.float32))[0]
+    return obs
+
+
+def train_seed(args, progress, i):
     return episode_seed(args.seed, TRAIN_STREAM, progress.episodes[i] * args.num_envs + i)
 
 
-def restart_envs(envs, args, progress) -> np.ndarray:
-    """Each env's running episode again from its reset seed and actions (MuJoCo: deterministic)."""
-    observations = []
-    for i, env in enumerate(envs):
-        obs, _ = env.reset(seed=train_seed(args, progress, i))
-        for action in progress.running_episodes[i][1]:
-            obs = env.step(np.array(action, np.float32))[0]
-        observations.append(obs)
-    return np.stack(observations)
-
-
-def step_envs(envs, kept_obs, actions, args, progress, episodes, writer, step) -> tuple:
-    """A step of every env, kept_obs and actions added to its running episode; an ended episode
-    goes to the query pool and its env resets. Returns the next observations, the states the step
-    reached, true rewards, terminations and ends."""
+def step_envs(envs, kept_obs, actions, args, progress, episodes, writer, step):
+    """A step of every env; an ended episode goes to the query pool. Returns the next
+    observations, the states reached, true rewards, terminations and episode ends."""
     results = [env.step(action) for env, action in zip(envs, actions)]
     reached, rewards, terminated, truncated = map(np.array, list(zip(*results))[:4])
     if not (np.isfinite(rewards).all() and np.isfinite(reached).all()):
         raise FloatingPointError("non-finite reward or observation from the environment")
     next_obs = reached.copy()
-    for i, env in enumerate(envs):
-        for part, value in zip(progress.running_episodes[i], (kept_obs, actions, rewards)):
+    for i, running in enumerate(progress.running_episodes):
+        for part, value in zip(running, (kept_obs, actions, rewards)):
             part.append(value[i].tolist())
-        if terminated[i] or truncated[i]:  # to the query pool, with its reset seed
-            running = progress.running_episodes[i]
+        if terminated[i] or truncated[i]:  # with its reset seed
             episodes.append((*map(torch.tensor, running), train_seed(args, progress, i)))
             progress.recent_returns = (progress.recent_returns + [sum(running[2])])[-100:]
             writer.add_scalar("charts/episodic_return", sum(running[2]), step)
             progress.running_episodes[i] = ([], [], [])
             progress.episodes[i] += 1
-            next_obs[i] = env.reset(seed=train_seed(args, progress, i))[0]
+            next_obs[i] = restart_env(envs[i], args, progress, i)
     return next_obs, reached, rewards, terminated, terminated | truncated
 
 
-def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
+def evaluate(policy, reward_model, env, seeds, device):
     """Episodes of the policy with the true reward (B-Pref's metric), Meta-World success, and the
     correlation of r_hat with the true reward."""
     returns = []
@@ -679,7 +665,7 @@ def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
 
 
 # Plumbing: command line, files, checkpoints, logging
-def fail(message: str, code: int = 2):
+def fail(message, code=2):
     print(f"error: {message}", file=sys.stderr)
     sys.exit(code)
 
@@ -699,14 +685,14 @@ RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's t
     (("label_smoothing",), lambda v: 0 <= v < 1, "in [0, 1)"),
 ]
 
-def task_defaults(env_id: str, teacher: str) -> Args:
+def task_defaults(env_id, teacher):
     """Args with the task's preset and the teacher's fields (sim_teacher.TEACHERS)."""
     preset = PRESETS.get(env_id.removesuffix("-v3")) or PRESETS.get(env_kind(env_id), {})
     teacher_fields = {f"teacher_{k}": v for k, v in TEACHERS.get(teacher, {}).items()}
     return Args(env_id=env_id, **preset, **teacher_fields)
 
 
-def parse_args() -> Args:
+def parse_args():
     """tyro's command line, whose defaults are the task's preset and the teacher's fields (or the
     resumed run's configuration); its error box as one line."""
     pre = argparse.ArgumentParser(add_help=False)
@@ -741,7 +727,7 @@ def parse_args() -> Args:
     return args
 
 
-def check_args(args: Args, episode_len: int):
+def check_args(args, episode_len):
     """ValueError naming the first flag out of its range."""
     rollout = args.num_envs * args.num_steps
     rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names] + [
@@ -757,7 +743,7 @@ def check_args(args: Args, episode_len: int):
             raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {value}")
 
 
-def check_video(eval_env: gym.Env):
+def check_video(eval_env):
     """--capture-video: one frame rendered now rather than a failure at the first evaluation."""
     try:
         import moviepy  # noqa: F401
@@ -771,7 +757,7 @@ def check_video(eval_env: gym.Env):
         os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
 
 
-def labelled_dataset(sessions: list[dict], segment_len: int, input_dim: int, device) -> dict:
+def labelled_dataset(sessions, segment_len, input_dim, device):
     """D: both segments' (observation, action) per step and the label of each kept query."""
     data = {"inputs0": [np.zeros((0, segment_len, input_dim))], "y": [np.zeros(0)]}
     data["inputs1"] = data["inputs0"][:]
@@ -787,7 +773,7 @@ def labelled_dataset(sessions: list[dict], segment_len: int, input_dim: int, dev
             for key, value in data.items()}
 
 
-def snapshot(parts: dict) -> dict:
+def snapshot(parts):
     """The checkpoint: one dict of plain tensors and numbers, a key per part."""
     state = {"torch_rng": torch.get_rng_state()}
     if torch.cuda.is_initialized():
@@ -804,7 +790,7 @@ def snapshot(parts: dict) -> dict:
     return state
 
 
-def restore(parts: dict, state: dict, device):
+def restore(parts, state, device):
     torch.set_rng_state(state["torch_rng"])
     if "cuda_rng" in state and device.type == "cuda":
         torch.cuda.set_rng_state_all(state["cuda_rng"])
@@ -821,7 +807,7 @@ def restore(parts: dict, state: dict, device):
             part.extend(state[name])
 
 
-def save_checkpoint(path: str, parts: dict):
+def save_checkpoint(path, parts):
     data = io.BytesIO()  # in memory first: a full disk is then a plain OSError
     torch.save(snapshot(parts), data)
     save_file(path, data.getvalue())
@@ -917,7 +903,6 @@ if __name__ == "__main__":
     envs = [env] + [make_env(args.env_id)[0] for _ in range(args.num_envs - 1)]
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
-    # One Adam over both networks, as SB3's policy
     optimizer = adam([*actor.parameters(), *critic.parameters()], args.learning_rate, eps=1e-5)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
@@ -948,13 +933,12 @@ if __name__ == "__main__":
             fail(f"the run in {args.output_dir!r} has already finished")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
         progress.start_time += time.time() - os.path.getmtime(checkpoint_path)
-    raw_obs = restart_envs(envs, args, progress)
-    # The rollout per step and env; next_values: V of the state the step reached
+    raw_obs = np.stack([restart_env(env, args, progress, i) for i, env in enumerate(envs)])
+    # The rollout: observations raw and normalised (the policy's), actions sampled and clipped
+    # (executed), V of the states reached
     shape = (args.num_steps, args.num_envs)
-    raw_obs_buf = torch.zeros(*shape, obs_dim, device=device)
-    obs_buf = torch.zeros(*shape, obs_dim, device=device)  # normalised: the policy's
-    actions_buf = torch.zeros(*shape, action_dim, device=device)
-    env_actions_buf = torch.zeros(*shape, action_dim, device=device)  # clipped: executed
+    raw_obs_buf, obs_buf = torch.zeros(2, *shape, obs_dim, device=device)
+    actions_buf, env_actions_buf = torch.zeros(2, *shape, action_dim, device=device)
     logprobs_buf, values_buf, next_values_buf, intrinsic_buf, true_rewards_buf, terminated_buf, \
         ends_buf = torch.zeros(7, *shape, device=device)
     stop = []  # SIGTERM or SIGINT: checkpoint after this rollout, then exit
@@ -989,7 +973,7 @@ if __name__ == "__main__":
                 with torch.no_grad():
                     action, logprobs_buf[t] = actor.sample(obs, t, args.sde_freq)
                     values_buf[t] = critic(obs)[:, 0]
-                env_action = action.clamp(-1, 1)  # executed and judged; PPO's ratio: `action`
+                env_action = action.clamp(-1, 1)
                 step = global_step + (t + 1) * args.num_envs
                 next_obs, reached, true_reward, terminated, ends = step_envs(
                     envs, raw_obs, env_action.cpu().numpy(), args, progress, episodes, writer, step)
@@ -1005,10 +989,10 @@ if __name__ == "__main__":
                 raw_obs = next_obs
             progress.global_step += rollout
 
-            # The reward PPO maximises: the kNN reward (pre-training), r_hat or the true reward
+            # The reward PPO maximises: r_int (pre-training), r_hat or the true reward
             rewards = true_rewards_buf if progress.pretrained else intrinsic_buf
             if progress.pretrained and not args.ground_truth_reward:
-                with torch.no_grad():  # r_hat(s, a): the ensemble mean
+                with torch.no_grad():  # the ensemble's mean
                     obs_actions = torch.cat([raw_obs_buf, env_actions_buf], -1)
                     rewards = reward_model(obs_actions).mean(0)[..., 0]
                 pair = torch.stack([rewards.flatten(), true_rewards_buf.flatten()])
@@ -1026,7 +1010,6 @@ if __name__ == "__main__":
                                 torch.tensor(clip, device=device), args, loss_fn)
             explained = 1 - (returns - values_buf).var() / returns.var().clamp(1e-8)
             losses["explained_variance"] = explained
-            writer.add_scalar("charts/clip_range", clip, progress.global_step)
             for name, value in losses.items():
                 writer.add_scalar(f"losses/{name}", value, progress.global_step)
             if not all(map(math.isfinite, losses.values())):
