@@ -19,7 +19,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 import tyro
-from torch.nn.utils.rnn import pad_sequence
 
 from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
 from sim_teacher import TEACHERS, load_labels, make_teacher, save_file, save_labels, set_labels_aside
@@ -146,7 +145,7 @@ class DMCEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
-    def __init__(self, domain: str, task: str, render_mode: str | None = None):
+    def __init__(self, domain, task, render_mode=None):
         from dm_control import suite
 
         self.dmc = suite.load(domain, task)
@@ -184,7 +183,7 @@ class MetaWorldSeeding(gym.Wrapper):
         return self.env.reset(options=options)
 
 
-def env_kind(env_id: str) -> str:
+def env_kind(env_id):
     import metaworld
 
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display"
@@ -196,7 +195,7 @@ def env_kind(env_id: str) -> str:
     return "gym"
 
 
-def make_env(env_id: str, render_mode: str | None = None) -> tuple[gym.Env, int]:
+def make_env(env_id, render_mode=None):
     """(env, episode length T): actions in [-1, 1], float32 observations, every reset seeded."""
     kind = env_kind(env_id)
     if kind == "dmc":
@@ -235,24 +234,24 @@ TRAIN_STREAM = 0  # episode seeds of the training and the evaluation env
 EVAL_STREAM = 1
 
 
-def numpy_seeds(seed: int) -> list[np.random.SeedSequence]:
+def numpy_seeds(seed):
     """Streams of the query sampler, the teacher and the seed steps' random actions."""
     return np.random.SeedSequence(seed).spawn(3)
 
 
-def episode_seed(run_seed: int, stream: int, episode: int) -> int:
+def episode_seed(run_seed, stream, episode):
     return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
 
 
 # Networks
-def mlp(in_dim: int, out_dim: int, hidden_dim: int, num_layers: int, activation=nn.ReLU):
+def mlp(in_dim, out_dim, hidden_dim, num_layers, activation=nn.ReLU):
     layers = []
     for i in range(num_layers):
         layers += [nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation()]
     return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
 
 
-def orthogonal_init(module: nn.Module) -> nn.Module:
+def orthogonal_init(module):
     """Reference code (utils.weight_init): orthogonal weights, zero biases."""
     for layer in module.modules():
         if isinstance(layer, nn.Linear):
@@ -280,7 +279,7 @@ class Actor(nn.Module):
         return torch.tanh(pre_tanh), tanh_gaussian_log_prob(mean, log_std, pre_tanh)
 
 
-def mean_policy(actor: Actor, device) -> callable:
+def mean_policy(actor, device):
     """The policy evaluated: an observation -> the mean action."""
     return lambda obs: torch.tanh(actor(torch.as_tensor(obs, device=device))[0])
 
@@ -315,7 +314,7 @@ class RewardEnsemble(nn.Module):
         centred = (obs_action - self.input_mean) / self.input_std
         return centred.clamp(-self.input_clip, self.input_clip)
 
-    def set_input_stats(self, states: torch.Tensor):
+    def set_input_stats(self, states):
         obs_dim = states.shape[-1]
         self.input_mean[:obs_dim] = states.mean(0)
         self.input_std[:obs_dim] = (states.var(0, unbiased=False) + 1e-8).sqrt()
@@ -327,7 +326,7 @@ class RewardEnsemble(nn.Module):
 
 
 # Algorithm
-def tanh_gaussian_log_prob(mean, log_std, pre_tanh) -> torch.Tensor:
+def tanh_gaussian_log_prob(mean, log_std, pre_tanh):
     """log pi(a|s) of a = tanh(u), u ~ N(mean, std^2) (SAC paper, appendix C, stable form)."""
     z = (pre_tanh - mean) / log_std.exp()
     gaussian = -0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)
@@ -341,24 +340,24 @@ def sac_critic_loss(q1, q2, rewards, terminated, next_q, next_log_prob, alpha, g
     return F.mse_loss(q1, target) + F.mse_loss(q2, target)
 
 
-def sac_actor_loss(log_prob, q1, q2, alpha) -> torch.Tensor:
+def sac_actor_loss(log_prob, q1, q2, alpha):
     """Appendix Eq. (7), with the smaller critic."""
     return (alpha * log_prob - torch.min(q1, q2)).mean()
 
 
-def temperature_loss(log_alpha, log_prob, target_entropy: float) -> torch.Tensor:
+def temperature_loss(log_alpha, log_prob, target_entropy):
     """SAC's learned temperature (reference code: agent/sac.py)."""
     return (log_alpha.exp() * (-log_prob.detach() - target_entropy)).mean()
 
 
-def optimize(optimizer, loss: torch.Tensor):
+def optimize(optimizer, loss):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
     loss.backward(inputs=[param for group in optimizer.param_groups for param in group["params"]])
     optimizer.step()
 
 
-def adam(params, lr: float) -> torch.optim.Adam:
+def adam(params, lr):
     return torch.optim.Adam(params, lr=lr, fused=True)
 
 
@@ -366,7 +365,7 @@ Batch = namedtuple("Batch", "obs actions rewards next_obs terminated")
 
 
 def sac_update(batch, rewards, actor, critic, critic_target, log_alpha, actor_opt, critic_opt,
-               alpha_opt, gamma) -> dict:
+               alpha_opt, gamma):
     alpha = log_alpha.exp().detach()
     with torch.no_grad():
         next_actions, next_log_prob = actor.sample(batch.next_obs)
@@ -385,52 +384,48 @@ def sac_update(batch, rewards, actor, critic, critic_target, log_alpha, actor_op
     return {name: value.detach() for name, value in losses.items()}
 
 
-def soft_update(critic: nn.Module, critic_target: nn.Module, tau: float):
+def soft_update(critic, critic_target, tau):
     with torch.no_grad():
         for param, target_param in zip(critic.parameters(), critic_target.parameters()):
             target_param.lerp_(param, tau)
 
 
-class ReplayBuffer:
-    """Transitions on the training device, the oldest overwritten when full; rewards are r_hat."""
+class ReplayBuffer(nn.Module):
+    """Transitions, the oldest overwritten when full; rewards are r_hat."""
 
-    def __init__(self, capacity, obs_dim, action_dim, device):
-        self.capacity = capacity
+    def __init__(self, capacity, obs_dim, action_dim):
+        super().__init__()
         self.size = 0
         self.pos = 0
-        self.device = device
         for name, dim in zip(Batch._fields, (obs_dim, action_dim, 1, obs_dim, 1)):
-            setattr(self, name, torch.zeros(capacity, dim, device=device))
+            self.register_buffer(name, torch.zeros(capacity, dim))
 
     def add(self, *transition):
         for name, value in zip(Batch._fields, transition):
             getattr(self, name)[self.pos] = torch.as_tensor(value)
-        self.pos = (self.pos + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
+        self.pos = (self.pos + 1) % len(self.obs)
+        self.size = min(self.size + 1, len(self.obs))
 
-    def sample(self, batch_size) -> Batch:
-        idx = torch.randint(self.size, (batch_size,), device=self.device)
+    def sample(self, batch_size):
+        idx = torch.randint(self.size, (batch_size,), device=self.obs.device)
         return Batch(*(getattr(self, name)[idx] for name in Batch._fields))
 
-    def state_dict(self) -> dict:
-        rows = {name: getattr(self, name)[: self.size].clone() for name in Batch._fields}
-        return rows | {"pos": self.pos}
+    def get_extra_state(self):
+        return {"size": self.size, "pos": self.pos}
 
-    def load_state_dict(self, state: dict):
+    def set_extra_state(self, state):
+        self.size = state["size"]
         self.pos = state["pos"]
-        self.size = len(state["obs"])
-        for name in Batch._fields:
-            getattr(self, name)[: self.size] = state[name]
 
 
-def knn_distance(states: torch.Tensor, reference: torch.Tensor, k: int) -> torch.Tensor:
+def knn_distance(states, reference, k):
     """Eq. (8) without the log: distance to the k-th nearest neighbour other than the state."""
     distances = torch.cdist(states, reference)
     nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
     return nearest[:, -1:].contiguous()
 
 
-def intrinsic_reward(batch: Batch, buffer: ReplayBuffer, k: int) -> torch.Tensor:
+def intrinsic_reward(batch, buffer, k):
     """Algorithm 2's r_int(s_t) of the batch's s_t among the buffer's states (reference: sac.py)."""
     return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
@@ -443,7 +438,7 @@ class RunningMeanStd:
     var: float = 1.0
     count: int = 0
 
-    def update(self, x: torch.Tensor):
+    def update(self, x):
         batch_mean = x.mean().item()
         batch_var = x.var(unbiased=False).item()
         total = self.count + x.numel()
@@ -455,7 +450,7 @@ class RunningMeanStd:
         self.count = total
 
 
-def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 16384):
+def relabel(buffer, reward_model, chunk=16384):
     """PEBBLE's relabelling: every stored transition's reward is r_hat, the ensemble's mean."""
     with torch.no_grad():
         for i in range(0, buffer.size, chunk):
@@ -463,27 +458,27 @@ def relabel(buffer: ReplayBuffer, reward_model: RewardEnsemble, chunk: int = 163
             buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
 
 
-def coverage_features(inputs0: torch.Tensor, inputs1: torch.Tensor, obs_dim: int) -> np.ndarray:
+def coverage_features(inputs0, inputs1, obs_dim):
     """Appendix, coverage sampling: both segments' states, flattened and concatenated."""
     states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
     return torch.cat(states, 1).cpu().numpy()
 
 
-def preference_loss(segment_returns, y: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
+def preference_loss(segment_returns, y, label_smoothing=0.0):
     """Eq. (3): cross-entropy of P[sigma1 > sigma0] (Eq. (2)) against (1 - y, y)."""
     target = (1 - label_smoothing) * y + label_smoothing / 2
     log_probs = F.log_softmax(segment_returns, dim=-1)
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
-def preference_accuracy(segment_returns, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def preference_accuracy(segment_returns, y):
     """(correct, counted) over the strict labels."""
     strict = y != 0.5
     correct = (segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5)
     return (correct & strict).sum(), strict.sum()
 
 
-def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[float, float]:
+def train_reward(reward_model, optimizer, preferences, args):
     """Algorithm 3, reward learning: up to reward_epochs passes over D, until 97% accuracy."""
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
@@ -511,16 +506,13 @@ def train_reward(reward_model, optimizer, preferences: dict, args) -> tuple[floa
     return loss, accuracy
 
 
-def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng) -> tuple:
+def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng):
     """SAMPLE() of Algorithm 3: `size` pairs of segments, chosen by the sampler among size x
     candidate_multiplier; the pairs' arrays and both segments' (obs, action) inputs."""
     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
     candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
-    device = preferences["y"].device
-    inputs0 = np.concatenate([candidates["obs0"], candidates["actions0"]], -1)
-    inputs0 = torch.as_tensor(inputs0, device=device)
-    inputs1 = np.concatenate([candidates["obs1"], candidates["actions1"]], -1)
-    inputs1 = torch.as_tensor(inputs1, device=device)
+    inputs0, inputs1 = (torch.as_tensor(np.concatenate([candidates[f"obs{i}"], candidates[
+        f"actions{i}"]], -1), device=preferences["y"].device) for i in (0, 1))
     chosen = np.arange(size)
     if sampler != "uniform":
         obs_dim = candidates["obs0"].shape[-1]
@@ -537,8 +529,15 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
     return segments, inputs0[chosen], inputs1[chosen]
 
 
+def add_labels(preferences, inputs0, inputs1, y, keep):
+    """D grows by the kept labels and both segments' (obs, action) inputs."""
+    new = {"inputs0": inputs0[keep], "inputs1": inputs1[keep], "y": torch.tensor(y[keep])}
+    for key in preferences:
+        preferences[key] = torch.cat([preferences[key], new[key].float().to(inputs0.device)])
+
+
 def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
-                     reward_optimizer, teacher, rng, writer, episode_len) -> int:
+                     reward_optimizer, teacher, rng, writer, episode_len):
     """Algorithm 3's feedback session: queries, the teacher's labels (saved at once), D grows by
     the kept ones, r_hat learns on D. Returns the size of D."""
     sampler = args.sampler if progress.pretrained else "uniform"  # reference: the first uniform
@@ -547,26 +546,15 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
     # Appendix, adaptive thresholds: eps * H / T * mean true return of recent episodes
     mean_return = float(np.mean(progress.recent_returns))
     teacher.set_thresholds(mean_return, args.segment_len, episode_len)
-    queries = {"step": step}  # what a person sees: each segment replayed from its episode
-    for side in (0, 1):
-        pool = [episodes[e] for e in segments[f"episode{side}"]]
-        queries[f"seed{side}"] = np.array([episode[3] for episode in pool])
-        queries[f"start{side}"] = segments[f"start{side}"]
-        queries[f"actions{side}"] = pad_sequence([ep[1] for ep in pool], batch_first=True).numpy()
-    y, keep = teacher.label(segments["rewards0"], segments["rewards1"], queries)
+    y, keep = teacher.label(segments["rewards0"], segments["rewards1"], segments | {"step": step})
     save_labels(args.output_dir, progress.sessions_done, step=step, y=y, keep=keep,
                 threshold_scale=mean_return * args.segment_len / episode_len, **segments)
     progress.feedback_used += size
     progress.sessions_done += 1
     progress.next_feedback_step = step + args.feedback_every
-    kept = torch.as_tensor(keep, device=inputs0.device)
-    y_kept = torch.as_tensor(y[keep], dtype=torch.float32, device=inputs0.device)
-    new = {"inputs0": inputs0[kept], "inputs1": inputs1[kept], "y": y_kept}
-    for key in preferences:
-        preferences[key] = torch.cat([preferences[key], new[key]])
+    add_labels(preferences, inputs0, inputs1, y, keep)
     writer.add_scalar("feedback/labels", progress.feedback_used, step)
     writer.add_scalar("feedback/skipped", (~keep).sum(), step)
-    writer.add_scalar("feedback/equal", (y[keep] == 0.5).sum(), step)
     if len(preferences["y"]) == 0:  # every query so far was skipped
         print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
         return 0
@@ -588,7 +576,7 @@ def reset_critic(critic, critic_target, critic_optimizer):
     critic_optimizer.state.clear()
 
 
-def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
+def evaluate(policy, reward_model, env, seeds, device):
     """Episodes of the policy with the true reward (B-Pref's metric), Meta-World success, and the
     correlation of r_hat with the true reward."""
     returns = []
@@ -619,7 +607,7 @@ def evaluate(policy, reward_model, env, seeds: list[int], device) -> dict:
 
 
 # Plumbing: command line, files, checkpoints, logging
-def fail(message: str, code: int = 2):
+def fail(message, code=2):
     print(f"error: {message}", file=sys.stderr)
     sys.exit(code)
 
@@ -638,14 +626,14 @@ RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's t
 ]
 
 
-def task_defaults(env_id: str, teacher: str) -> Args:
+def task_defaults(env_id, teacher):
     """Args with the task's preset and the teacher's fields (sim_teacher.TEACHERS)."""
     preset = PRESETS.get(env_id.removesuffix("-v3")) or PRESETS.get(env_kind(env_id), {})
     teacher_fields = {f"teacher_{k}": v for k, v in TEACHERS.get(teacher, {}).items()}
     return Args(env_id=env_id, **preset, **teacher_fields)
 
 
-def parse_args() -> Args:
+def parse_args():
     """tyro's command line, whose defaults are the task's preset and the teacher's fields (or the
     resumed run's configuration); its error box as one line."""
     pre = argparse.ArgumentParser(add_help=False)
@@ -683,7 +671,7 @@ def parse_args() -> Args:
     return args
 
 
-def check_args(args: Args, episode_len: int):
+def check_args(args, episode_len):
     """ValueError naming the first flag out of its range."""
     pretrain = args.seed_steps + args.unsup_steps
     rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names] + [
@@ -698,7 +686,7 @@ def check_args(args: Args, episode_len: int):
             raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {getattr(args, name)}")
 
 
-def check_video(eval_env: gym.Env):
+def check_video(eval_env):
     """--capture-video: one frame rendered now rather than a failure at the first evaluation."""
     try:
         import moviepy  # noqa: F401
@@ -712,23 +700,7 @@ def check_video(eval_env: gym.Env):
         os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
 
 
-def labelled_dataset(sessions: list[dict], segment_len: int, input_dim: int, device) -> dict:
-    """D: both segments' (observation, action) per step and the label of each kept query."""
-    data = {"inputs0": [np.zeros((0, segment_len, input_dim))], "y": [np.zeros(0)]}
-    data["inputs1"] = data["inputs0"][:]
-    for s in sessions:
-        for side in (0, 1):
-            inputs = np.concatenate([s[f"obs{side}"], s[f"actions{side}"]], -1)[s["keep"]]
-            if inputs.shape[1:] != (segment_len, input_dim):
-                raise ValueError(f"--labels-from: its segments ({inputs.shape[1:]}) do not fit "
-                                 f"this run ({segment_len} steps of {input_dim} inputs)")
-            data[f"inputs{side}"].append(inputs)
-        data["y"].append(s["y"][s["keep"]])
-    return {key: torch.tensor(np.concatenate(value), dtype=torch.float32, device=device)
-            for key, value in data.items()}
-
-
-def snapshot(parts: dict) -> dict:
+def snapshot(parts):
     """The checkpoint: one dict of plain tensors and numbers, a key per part."""
     state = {"torch_rng": torch.get_rng_state()}
     if torch.cuda.is_initialized():
@@ -745,7 +717,7 @@ def snapshot(parts: dict) -> dict:
     return state
 
 
-def restore(parts: dict, state: dict, device):
+def restore(parts, state, device):
     torch.set_rng_state(state["torch_rng"])
     if "cuda_rng" in state and device.type == "cuda":
         torch.cuda.set_rng_state_all(state["cuda_rng"])
@@ -764,20 +736,16 @@ def restore(parts: dict, state: dict, device):
             part.extend(state[name])
 
 
-def check_finite(losses: dict):
+def check_finite(losses):
     """A NaN or infinity stops the run before a checkpoint could hold it."""
     if bad := [name for name, value in losses.items() if not math.isfinite(value)]:
         raise FloatingPointError(f"non-finite {', '.join(bad)}")
 
 
-def save_checkpoint(path: str, parts: dict):
+def save_checkpoint(path, parts):
     data = io.BytesIO()  # in memory first: a full disk is then a plain OSError
     torch.save(snapshot(parts), data)
     save_file(path, data.getvalue())
-
-
-EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback",
-                "reward_correlation", "wall_time")
 
 
 def evaluation(args, step, progress, actor, reward_model, eval_env, writer, device):
@@ -793,14 +761,13 @@ def evaluation(args, step, progress, actor, reward_model, eval_env, writer, devi
     wall_time = round(time.time() - progress.start_time, 1)
     progress.eval_rows.append({"step": step, **result, "feedback": progress.feedback_used,
                                "wall_time": wall_time})
-    rows = [EVAL_COLUMNS] + [[row[c] for c in EVAL_COLUMNS] for row in progress.eval_rows]
-    save_file(os.path.join(args.output_dir, "eval.csv"),
-              "".join(",".join(map(str, row)) + "\n" for row in rows).encode())
-    for name in ("episode_return", "success_rate", "reward_correlation"):
-        writer.add_scalar(f"eval/{name}", result[name], step)
+    lines = [progress.eval_rows[0]] + [map(str, row.values()) for row in progress.eval_rows]
+    save_file(os.path.join(args.output_dir, "eval.csv"), "".join(
+        ",".join(line) + "\n" for line in lines).encode())
+    for name, value in result.items():
+        writer.add_scalar(f"eval/{name}", value, step)
     writer.add_scalar("charts/SPS", step / wall_time, step)
-    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS",
-          flush=True)
+    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS")
 
 
 @dataclass
@@ -827,20 +794,28 @@ if __name__ == "__main__":
         eval_env, _ = make_env(args.env_id, "rgb_array" if args.capture_video else None)
         check_args(args, episode_len)
         sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
-        teacher_fields = {k.removeprefix("teacher_"): v for k, v in asdict(args).items()
-                          if k.startswith("teacher_")}
-        teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, **teacher_fields)
+        episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool
+        teacher_fields = {k[8:]: v for k, v in vars(args).items() if k.startswith("teacher_")}
+        teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, episodes,
+                               **teacher_fields)
         imported = load_labels(args.labels_from) if args.labels_from and not args.resume else []
         obs_dim = env.observation_space.shape[0]
         action_dim = env.action_space.shape[0]
-        preferences = labelled_dataset(imported, args.segment_len, obs_dim + action_dim, device)
-        if args.resume and not os.path.isfile(os.path.join(args.output_dir, "checkpoint.pt")):
+        empty = torch.zeros(0, args.segment_len, obs_dim + action_dim, device=device)
+        preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device)}
+        for s in imported:  # --labels-from: D starts with an earlier run's labels
+            inputs = [np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1) for i in (0, 1)]
+            if inputs[0].shape[1:] != empty.shape[1:]:
+                raise ValueError(f"--labels-from: its segments do not fit this run's {empty.shape[1:]}")
+            add_labels(preferences, *map(torch.tensor, inputs), s["y"], s["keep"])
+        checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
+        if args.resume and not os.path.isfile(checkpoint_path):
             raise ValueError(f"--resume {args.output_dir!r}: no checkpoint.pt there")
         if not args.resume and os.path.isdir(args.output_dir) and os.listdir(args.output_dir):
             raise ValueError(f"--output-dir {args.output_dir!r} already holds a run")
         os.makedirs(os.path.join(args.output_dir, "labels"), exist_ok=True)
         if not args.resume:
-            save_file(os.path.join(args.output_dir, "config.json"), json.dumps(asdict(args)).encode())
+            save_file(os.path.join(args.output_dir, "config.json"), json.dumps(vars(args)).encode())
     except (ValueError, OSError) as error:
         fail(str(error))
     if args.capture_video:
@@ -850,12 +825,12 @@ if __name__ == "__main__":
     if args.track:
         import wandb
 
-        wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=asdict(args),
+        wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=vars(args),
                    name=os.path.basename(args.output_dir), save_code=True)
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(args.output_dir)
-    table = "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items())
+    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
 
     # Seeding: numpy streams (query sampler, teacher, seed steps' actions), torch, every reset
@@ -873,7 +848,7 @@ if __name__ == "__main__":
     alpha_optimizer = adam([log_alpha], args.alpha_lr)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
-    buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim, device)
+    buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim).to(device)
     intrinsic_stats = RunningMeanStd()
     # Feedback sessions from the end of pre-training, every feedback_every steps
     first_session = args.seed_steps + args.unsup_steps + 1
@@ -884,7 +859,6 @@ if __name__ == "__main__":
                              args.total_timesteps)
     if planned < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {planned} of the {args.max_feedback} labels fit in the run")
-    episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool (reference: 100)
     progress = Progress(next_feedback_step=first_session, start_time=time.time())
     parts = {"progress": progress, "actor": actor, "critic": critic,
              "critic_target": critic_target, "reward_model": reward_model,
@@ -893,7 +867,6 @@ if __name__ == "__main__":
              "buffer": buffer, "teacher": teacher, "log_alpha": log_alpha,
              "intrinsic_stats": intrinsic_stats, "preferences": preferences, "rng": rng,
              "action_rng": action_rng, "episodes": episodes}
-    checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
     if args.resume:
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
         print(f"resuming from the checkpoint at step {progress.global_step}")

@@ -144,11 +144,13 @@ TEACHERS: dict[str, dict[str, float]] = {
 """The six teachers of the paper (Section 3.3): name -> the fields that differ from the oracle."""
 
 
-def make_teacher(name: str, seed: int | None = None, run_dir: str = "", **overrides: float):
+def make_teacher(name: str, seed: int | None = None, run_dir: str = "", episodes=(),
+                 **overrides: float):
     """A preset of TEACHERS with any field overridden, e.g. make_teacher("myopic", eps_mistake=0.1);
-    "human": a person who answers in label_server.py's page for the run in run_dir."""
+    "human": a person who answers in label_server.py's page for the run in run_dir, watching the
+    segments replayed from `episodes` (the query pool, see HumanTeacher)."""
     if name == "human":
-        return HumanTeacher(run_dir)
+        return HumanTeacher(run_dir, episodes)
     if name not in TEACHERS:
         raise ValueError(f"unknown teacher {name!r}: choose one of {', '.join(TEACHERS)}")
     fields = {"beta", "gamma", "eps_mistake", "eps_skip", "eps_equal"}
@@ -282,6 +284,8 @@ class HumanTeacher:
 
     run_dir: str
     """the run's directory (its queries/ is where label_server.py looks)"""
+    episodes: object = ()
+    """the query pool: entries (observations, actions, true rewards, reset seed) of whole episodes"""
     session: int = 0
     """the next session's number"""
 
@@ -296,11 +300,21 @@ class HumanTeacher:
 
     def label(self, rewards0: np.ndarray, rewards1: np.ndarray, queries: dict | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
-        """(y, keep) as SimTeacher.label's, from a person's answers to `queries` (the layout of the
-        queries file; the rewards are not shown). A session asked again (after --resume) keeps the
+        """(y, keep) as SimTeacher.label's, from a person's answers. `queries`: the session's step and
+        where each segment was cut (episode0, start0, episode1, start1: indices into `episodes` and
+        first steps); the rewards are not shown. A session asked again (after --resume) keeps the
         answers already given."""
         n = len(rewards0)
-        save_npz(queries_path(self.run_dir, self.session), **queries)
+        saved = {"step": queries["step"]}
+        for side in (0, 1):
+            pool = [self.episodes[e] for e in queries[f"episode{side}"]]
+            longest = max(len(episode[1]) for episode in pool)
+            saved[f"seed{side}"] = np.array([episode[3] for episode in pool])
+            saved[f"start{side}"] = queries[f"start{side}"]
+            saved[f"actions{side}"] = np.stack([np.pad(np.asarray(episode[1], np.float32),
+                                                       ((0, longest - len(episode[1])), (0, 0)))
+                                                for episode in pool])
+        save_npz(queries_path(self.run_dir, self.session), **saved)
         print(f"step {queries['step']}: {n} queries wait for a person: python label_server.py "
               f"{self.run_dir} and open http://127.0.0.1:8000 (stopping the run now loses nothing: "
               "--resume asks this session again, with the answers given)", flush=True)
