@@ -24,6 +24,23 @@ EDITS = {
         "pebble.py": [(
             "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
             "")],
+        "prefppo.py": [(
+            "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
+            "")],
+    },
+    # The reference PrefPPO's SB3 ends an episode at its time limit as at a termination (differences.md 16)
+    "no-bootstrap-time-limits": {
+        "prefppo.py": [("next_values[t] * (1.0 - terminated[t])", "next_values[t] * (1.0 - ends[t])")],
+    },
+    # The reference PrefPPO's query pool and r_hat see VecNormalize's observations of their step (defect 7,
+    # differences.md 17); no statistics of D
+    "stale-reward-inputs": {
+        "prefppo.py": [
+            ("envs, raw_obs, env_action", "envs, obs.cpu().numpy(), env_action"),
+            ("torch.cat([raw_obs_buf, env_actions_buf], -1)", "torch.cat([obs_buf, env_actions_buf], -1)"),
+            ("torch.cat([torch.as_tensor(obs, device=device), action])",
+             "torch.cat([obs_stats.normalize(obs).to(device), action])"),
+            ("    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n", "")],
     },
 }
 
