@@ -21,7 +21,8 @@ import torch.nn.functional as F
 import tyro
 
 from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
-from sim_teacher import TEACHERS, load_labels, make_teacher, save_file, save_labels, set_labels_aside
+from sim_teacher import (TEACHERS, load_labels, make_teacher, save_file, save_labels,
+                         set_labels_aside)
 
 
 @dataclass
@@ -41,19 +42,19 @@ class Args:
     output_dir: str = ""
     """where the run's files go (default: runs/<run name>)"""
     checkpoint_every: int = 50000
-    """environment steps between checkpoints (0: only at the end, on SIGTERM and SIGINT)"""
+    """steps between checkpoints (0: at the end and on SIGTERM/SIGINT)"""
     resume: str = ""
-    """continue the run in this directory from its checkpoint, with its configuration"""
+    """continue the run in this directory"""
     labels_from: str = ""
-    """start D with an earlier run's labels (its directory, its labels/ or one .npz)"""
+    """start D with an earlier run's labels (run directory or .npz)"""
 
-    # Algorithm specific arguments: walker-walk's values, other tasks' in PRESETS
+    # Algorithm specific arguments (walker-walk's; PRESETS: the others')
     env_id: str = "walker-walk"
-    """DMC domain-task, Meta-World v3 task (button-press), or Gymnasium id (module:id)"""
+    """DMC domain-task, Meta-World task or Gymnasium id"""
     total_timesteps: int = 500_000
     """total environment steps"""
     teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic", "human"] = "oracle"
-    """simulated teacher (paper Section 3.3), or human: a person, in label_server.py's page"""
+    """simulated teacher (Section 3.3), or human (label_server.py)"""
     teacher_beta: float = math.inf
     """the teacher's rationality beta (inf: rational)"""
     teacher_gamma: float = 1.0
@@ -80,7 +81,7 @@ class Args:
     seed_steps: int = 1000
     """random-action steps at the start"""
     unsup_steps: int = 9000
-    """unsupervised pre-training steps (kNN state entropy) after the seed steps"""
+    """unsupervised pre-training steps after the seed steps"""
     hidden_dim: int = 1024
     """hidden units of the actor and critic"""
     num_layers: int = 2
@@ -124,11 +125,11 @@ class Args:
     query_recent_episodes: int = 100
     """segments come from the last N complete episodes (0: all)"""
     critic_reset_updates: int = 100
-    """SAC updates on relabelled data right after the first reward update's critic reset"""
+    """SAC updates right after the critic reset"""
 
 
 # Paper appendix, PEBBLE's hyperparameters (Args: walker-walk's); Meta-World feedback every 4950
-# steps so that 10,000 labels fit in 1M, segments of 50 as the reference's runs (docs/differences.md)
+# steps so that 10,000 labels fit in 1M, segments of 50 as the reference's runs (differences.md)
 PRESETS = {
     "quadruped-walk": dict(total_timesteps=1_000_000, feedback_every=30_000, learning_rate=1e-4),
     "metaworld": dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50,
@@ -140,8 +141,7 @@ PRESETS = {
 
 # Environments
 class DMCEnv(gym.Env):
-    """A dm_control suite task as a Gymnasium env with flat observations; reset(seed=s) seeds the
-    task's random state."""
+    """A dm_control task as a Gymnasium env with flat observations."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
@@ -175,7 +175,7 @@ class DMCEnv(gym.Env):
 
 
 class MetaWorldSeeding(gym.Wrapper):
-    """reset(seed=s) seeds Meta-World's generator of object and goal positions."""
+    """reset(seed=s) seeds the object and goal positions."""
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
@@ -186,7 +186,7 @@ class MetaWorldSeeding(gym.Wrapper):
 def env_kind(env_id):
     import metaworld
 
-    with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display"
+    with warnings.catch_warnings(action="ignore"):
         from dm_control import suite
     if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
@@ -196,7 +196,7 @@ def env_kind(env_id):
 
 
 def make_env(env_id, render_mode=None):
-    """(env, episode length T): actions in [-1, 1], float32 observations, every reset seeded."""
+    """(env, episode length T), actions in [-1, 1]."""
     kind = env_kind(env_id)
     if kind == "dmc":
         env = DMCEnv(*env_id.split("-", 1), render_mode)
@@ -204,8 +204,8 @@ def make_env(env_id, render_mode=None):
     elif kind == "metaworld":
         env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3",
                        render_mode=render_mode, disable_env_checker=True)
-        env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: 500-step episodes
-        # Reference code (utils.make_metaworld_env): a fresh hidden goal from the whole range
+        env.get_wrapper_attr("toggle_terminate_on_success")(False)
+        # Reference code: a fresh hidden goal at each reset
         env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
         env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
         env.unwrapped._partially_observable = True
@@ -230,12 +230,12 @@ def make_env(env_id, render_mode=None):
     return env, episode_len
 
 
-TRAIN_STREAM = 0  # episode seeds of the training and the evaluation env
+TRAIN_STREAM = 0  # episode seeds of the training and evaluation envs
 EVAL_STREAM = 1
 
 
 def numpy_seeds(seed):
-    """Streams of the query sampler, the teacher and the seed steps' random actions."""
+    """Streams of the sampler, the teacher and the seed steps' actions."""
     return np.random.SeedSequence(seed).spawn(3)
 
 
@@ -298,8 +298,7 @@ class TwinCritic(nn.Module):
 
 
 class RewardEnsemble(nn.Module):
-    """Appendix, reward model: 3 x 256 LeakyReLU layers, tanh output; (..., obs+action) -> each
-    member's r_hat (members, ..., 1), observations standardised by D's states, clipped to +-10."""
+    """Appendix, reward model: 3 x 256 LeakyReLU, tanh output; inputs standardised by D."""
 
     def __init__(self, obs_dim, action_dim, size):
         super().__init__()
@@ -327,7 +326,7 @@ class RewardEnsemble(nn.Module):
 
 # Algorithm
 def tanh_gaussian_log_prob(mean, log_std, pre_tanh):
-    """log pi(a|s) of a = tanh(u), u ~ N(mean, std^2) (SAC paper, appendix C, stable form)."""
+    """log pi(a|s), a = tanh(u), u ~ N(mean, std^2) (SAC paper, appendix C)."""
     z = (pre_tanh - mean) / log_std.exp()
     gaussian = -0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)
     squash = 2 * (math.log(2) - pre_tanh - F.softplus(-2 * pre_tanh))
@@ -419,14 +418,14 @@ class ReplayBuffer(nn.Module):
 
 
 def knn_distance(states, reference, k):
-    """Eq. (8) without the log: distance to the k-th nearest neighbour other than the state."""
+    """Eq. (8) without the log: distance to the k-th nearest other state."""
     distances = torch.cdist(states, reference)
     nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
     return nearest[:, -1:].contiguous()
 
 
 def intrinsic_reward(batch, buffer, k):
-    """Algorithm 2's r_int(s_t) of the batch's s_t among the buffer's states (reference: sac.py)."""
+    """Algorithm 2's r_int(s_t) among the buffer's states."""
     return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
 
 
@@ -451,7 +450,7 @@ class RunningMeanStd:
 
 
 def relabel(buffer, reward_model, chunk=16384):
-    """PEBBLE's relabelling: every stored transition's reward is r_hat, the ensemble's mean."""
+    """PEBBLE's relabelling of every stored transition with r_hat."""
     with torch.no_grad():
         for i in range(0, buffer.size, chunk):
             obs_action = torch.cat([buffer.obs[i : i + chunk], buffer.actions[i : i + chunk]], -1)
@@ -459,7 +458,7 @@ def relabel(buffer, reward_model, chunk=16384):
 
 
 def coverage_features(inputs0, inputs1, obs_dim):
-    """Appendix, coverage sampling: both segments' states, flattened and concatenated."""
+    """Appendix, coverage sampling: both segments' states."""
     states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
     return torch.cat(states, 1).cpu().numpy()
 
@@ -479,7 +478,7 @@ def preference_accuracy(segment_returns, y):
 
 
 def train_reward(reward_model, optimizer, preferences, args):
-    """Algorithm 3, reward learning: up to reward_epochs passes over D, until 97% accuracy."""
+    """Algorithm 3, reward learning (reference: stops at 97% accuracy)."""
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
     y = preferences["y"]
@@ -507,8 +506,7 @@ def train_reward(reward_model, optimizer, preferences, args):
 
 
 def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng):
-    """SAMPLE() of Algorithm 3: `size` pairs of segments, chosen by the sampler among size x
-    candidate_multiplier; the pairs' arrays and both segments' (obs, action) inputs."""
+    """SAMPLE() of Algorithm 3: the chosen pairs and their (obs, action) inputs."""
     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
     candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
     inputs0, inputs1 = (torch.as_tensor(np.concatenate([candidates[f"obs{i}"], candidates[
@@ -538,12 +536,11 @@ def add_labels(preferences, inputs0, inputs1, y, keep):
 
 def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
                      reward_optimizer, teacher, rng, writer, episode_len):
-    """Algorithm 3's feedback session: queries, the teacher's labels (saved at once), D grows by
-    the kept ones, r_hat learns on D. Returns the size of D."""
-    sampler = args.sampler if progress.pretrained else "uniform"  # reference: the first uniform
+    """Algorithm 3, lines 9-13: queries, labels, D, reward learning. Returns |D|."""
+    sampler = args.sampler if progress.pretrained else "uniform"  # reference: first uniform
     segments, inputs0, inputs1 = sample_queries(sampler, size, episodes, reward_model, preferences,
                                                 args, rng)
-    # Appendix, adaptive thresholds: eps * H / T * mean true return of recent episodes
+    # Appendix, adaptive thresholds
     mean_return = float(np.mean(progress.recent_returns))
     teacher.set_thresholds(mean_return, args.segment_len, episode_len)
     y, keep = teacher.label(segments["rewards0"], segments["rewards1"], segments | {"step": step})
@@ -555,7 +552,7 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
     add_labels(preferences, inputs0, inputs1, y, keep)
     writer.add_scalar("feedback/labels", progress.feedback_used, step)
     writer.add_scalar("feedback/skipped", (~keep).sum(), step)
-    if len(preferences["y"]) == 0:  # every query so far was skipped
+    if len(preferences["y"]) == 0:  # all skipped so far
         print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
         return 0
     states = torch.cat([preferences["inputs0"], preferences["inputs1"]], 1)
@@ -577,8 +574,7 @@ def reset_critic(critic, critic_target, critic_optimizer):
 
 
 def evaluate(policy, reward_model, env, seeds, device):
-    """Episodes of the policy with the true reward (B-Pref's metric), Meta-World success, and the
-    correlation of r_hat with the true reward."""
+    """True return (B-Pref's metric), success, r_hat's correlation with the true reward."""
     returns = []
     successes = []
     true_rewards = []
@@ -614,10 +610,11 @@ def fail(message, code=2):
 
 RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
                      "wandb_project_name", "capture_video")
-RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's to check
+RANGES = [  # (flags, test, rule); the teacher checks its own
     (("seed", "seed_steps", "unsup_steps", "checkpoint_every", "buffer_size",
       "query_recent_episodes", "critic_reset_updates"), lambda v: v >= 0, ">= 0"),
-    (("max_feedback", "feedback_per_session", "feedback_every", "hidden_dim", "num_layers", "batch_size", "eval_every",
+    (("max_feedback", "feedback_per_session", "feedback_every", "hidden_dim", "num_layers",
+      "batch_size", "eval_every",
       "eval_episodes", "knn_k", "reward_ensemble_size", "reward_batch_size", "reward_epochs",
       "candidate_multiplier", "target_update_every"), lambda v: v >= 1, ">= 1"),
     (("learning_rate", "alpha_lr", "reward_lr", "init_temperature"), lambda v: v > 0, "> 0"),
@@ -627,15 +624,14 @@ RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's t
 
 
 def task_defaults(env_id, teacher):
-    """Args with the task's preset and the teacher's fields (sim_teacher.TEACHERS)."""
+    """Args with the task's preset and the teacher's fields."""
     preset = PRESETS.get(env_id.removesuffix("-v3")) or PRESETS.get(env_kind(env_id), {})
     teacher_fields = {f"teacher_{k}": v for k, v in TEACHERS.get(teacher, {}).items()}
     return Args(env_id=env_id, **preset, **teacher_fields)
 
 
 def parse_args():
-    """tyro's command line, whose defaults are the task's preset and the teacher's fields (or the
-    resumed run's configuration); its error box as one line."""
+    """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
     pre = argparse.ArgumentParser(add_help=False)
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
@@ -656,7 +652,8 @@ def parse_args():
             args = tyro.cli(Args, default=default)
     except SystemExit as exit_:
         if exit_.code:  # the box's text up to its first rule
-            text = "\n".join(line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:])
+            lines = captured.getvalue().splitlines()[1:]
+            text = "\n".join(line.strip("│╭╰╮╯ ") for line in lines)
             fail(" ".join(text.split("\n─")[0].split()))
         raise
     if given.resume:
@@ -666,8 +663,8 @@ def parse_args():
             fail(f"--{changed[0].replace('_', '-')} cannot change when resuming")
         args.output_dir = given.resume
     if not args.output_dir:
-        run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}__{int(time.time())}"
-        args.output_dir = os.path.join("runs", run_name)
+        run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}"
+        args.output_dir = os.path.join("runs", f"{run_name}__{int(time.time())}")
     return args
 
 
@@ -683,11 +680,12 @@ def check_args(args, episode_len):
     ]
     for name, ok, rule in rules:
         if not ok(getattr(args, name)):
-            raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {getattr(args, name)}")
+            flag = name.replace("_", "-")
+            raise ValueError(f"--{flag} must be {rule}, got {getattr(args, name)}")
 
 
 def check_video(eval_env):
-    """--capture-video: one frame rendered now rather than a failure at the first evaluation."""
+    """--capture-video: render one frame now."""
     try:
         import moviepy  # noqa: F401
 
@@ -697,7 +695,7 @@ def check_video(eval_env):
     except Exception as error:
         print(f"error: --capture-video cannot render ({type(error).__name__}); it needs moviepy "
               "and, without a display, MUJOCO_GL=egl or osmesa", file=sys.stderr, flush=True)
-        os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
+        os._exit(2)  # not sys.exit: the GL context's finalizer would print a traceback
 
 
 def snapshot(parts):
@@ -743,13 +741,13 @@ def check_finite(losses):
 
 
 def save_checkpoint(path, parts):
-    data = io.BytesIO()  # in memory first: a full disk is then a plain OSError
+    data = io.BytesIO()
     torch.save(snapshot(parts), data)
     save_file(path, data.getvalue())
 
 
 def evaluation(args, step, progress, actor, reward_model, eval_env, writer, device):
-    """eval_episodes episodes of the mean policy: a row of eval.csv, TensorBoard."""
+    """A row of eval.csv."""
     if args.capture_video:
         eval_env.name_prefix = f"step_{step}"
     first = len(progress.eval_rows) * args.eval_episodes
@@ -775,15 +773,15 @@ class Progress:
     """What the main loop carries besides networks, optimizers and buffers."""
 
     global_step: int = 0
-    episodes: int = 0  # training episodes before the running one
-    running_episode: tuple = field(default_factory=lambda: ([], [], []))  # obs, actions, rewards
-    recent_returns: list = field(default_factory=list)  # of the last 10 training episodes
+    episodes: int = 0
+    running_episode: tuple = field(default_factory=lambda: ([], [], []))
+    recent_returns: list = field(default_factory=list)  # of the last 10 episodes
     sessions_done: int = 0
     feedback_used: int = 0
     next_feedback_step: int = 0
-    pretrained: bool = False  # SAC learns from r_hat (or the true reward)
+    pretrained: bool = False
     eval_rows: list = field(default_factory=list)
-    start_time: float = 0.0  # time.time() at step 0, as if the run had never stopped
+    start_time: float = 0.0
 
 
 if __name__ == "__main__":
@@ -792,6 +790,8 @@ if __name__ == "__main__":
     try:
         env, episode_len = make_env(args.env_id)
         eval_env, _ = make_env(args.env_id, "rgb_array" if args.capture_video else None)
+        if args.capture_video:
+            check_video(eval_env)
         check_args(args, episode_len)
         sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
         episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool
@@ -803,10 +803,10 @@ if __name__ == "__main__":
         action_dim = env.action_space.shape[0]
         empty = torch.zeros(0, args.segment_len, obs_dim + action_dim, device=device)
         preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device)}
-        for s in imported:  # --labels-from: D starts with an earlier run's labels
+        for s in imported:  # --labels-from
             inputs = [np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1) for i in (0, 1)]
             if inputs[0].shape[1:] != empty.shape[1:]:
-                raise ValueError(f"--labels-from: its segments do not fit this run's {empty.shape[1:]}")
+                raise ValueError(f"--labels-from: segments do not fit this run's {empty.shape[1:]}")
             add_labels(preferences, *map(torch.tensor, inputs), s["y"], s["keep"])
         checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
         if args.resume and not os.path.isfile(checkpoint_path):
@@ -819,7 +819,6 @@ if __name__ == "__main__":
     except (ValueError, OSError) as error:
         fail(str(error))
     if args.capture_video:
-        check_video(eval_env)
         eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(args.output_dir, "videos"),
                                             episode_trigger=lambda e: e % args.eval_episodes == 0)
     if args.track:
@@ -833,11 +832,11 @@ if __name__ == "__main__":
     table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
 
-    # Seeding: numpy streams (query sampler, teacher, seed steps' actions), torch, every reset
+    # Seeding: numpy streams, torch, every reset
     rng = np.random.default_rng(sampler_seed)
     action_rng = np.random.default_rng(action_seed)
     torch.manual_seed(args.seed)
-    torch.set_flush_denormal(True)  # MuJoCo's tiny float32 velocities: slow on a CPU
+    torch.set_flush_denormal(True)
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
@@ -850,7 +849,7 @@ if __name__ == "__main__":
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
     buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim).to(device)
     intrinsic_stats = RunningMeanStd()
-    # Feedback sessions from the end of pre-training, every feedback_every steps
+    # Feedback sessions
     first_session = args.seed_steps + args.unsup_steps + 1
     steps = session_steps(first_session, args.feedback_every, args.total_timesteps)
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session,
@@ -874,24 +873,24 @@ if __name__ == "__main__":
             fail(f"the run in {args.output_dir!r} has already finished")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
         progress.start_time += time.time() - os.path.getmtime(checkpoint_path)
-    # The running episode again from its reset seed and actions (MuJoCo is deterministic)
+    # The running episode again from its seed and actions
     obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
     for action in progress.running_episode[1]:
         obs = env.step(np.array(action, np.float32))[0]
-    stop = []  # SIGTERM or SIGINT: checkpoint after this step, then exit
+    stop = []  # SIGTERM or SIGINT: checkpoint, exit
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
     signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
     losses = {}
 
-    # Main loop: Algorithm 3 (PEBBLE) after Algorithm 2 (unsupervised pre-training)
+    # Algorithm 3 (PEBBLE), Algorithm 2 (unsupervised pre-training) first
     try:
         for global_step in range(progress.global_step + 1, args.total_timesteps + 1):
-            # Feedback session, relabelling; after the first reward update, the critic reset
+            # Feedback session, relabelling, critic reset (Algorithm 3, lines 9-17)
             new_reward = args.ground_truth_reward and global_step == first_session
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
                     and progress.sessions_done < len(session_sizes)
                     and any(len(episode[0]) >= args.segment_len for episode in episodes)):
-                if args.teacher == "human":  # --resume asks this session again
+                if args.teacher == "human":  # --resume asks it again
                     save_checkpoint(checkpoint_path, parts)
                 size = int(session_sizes[progress.sessions_done])
                 n_labels = feedback_session(args, global_step, progress, size, episodes,
@@ -910,7 +909,7 @@ if __name__ == "__main__":
                     if update % args.target_update_every == 0:
                         soft_update(critic, critic_target, args.tau)
 
-            # Act, step, store (the reward: r_hat, the true reward, or 0 before pre-training ends)
+            # Act, step, store
             if global_step <= args.seed_steps:
                 action = action_rng.uniform(-1, 1, action_dim).astype(np.float32)
             else:
@@ -929,7 +928,7 @@ if __name__ == "__main__":
             for part, value in zip(progress.running_episode, (obs, action, true_reward)):
                 part.append(np.asarray(value).tolist())
             obs = next_obs
-            if terminated or truncated:  # to the query pool, with its reset seed
+            if terminated or truncated:  # to the query pool
                 seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes)
                 episodes.append((*map(torch.tensor, progress.running_episode), seed))
                 episode_return = sum(progress.running_episode[2])
@@ -939,11 +938,11 @@ if __name__ == "__main__":
                 progress.episodes += 1
                 obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
 
-            # SAC update: on the kNN state entropy during pre-training, then on r_hat
+            # SAC update
             if global_step > args.seed_steps:
                 batch = buffer.sample(args.batch_size)
                 rewards = batch.rewards
-                if not progress.pretrained:  # Algorithm 2: r_int over its running std
+                if not progress.pretrained:  # Algorithm 2
                     rewards = intrinsic_reward(batch, buffer, args.knn_k)
                     intrinsic_stats.update(rewards)
                     rewards = rewards / max(math.sqrt(intrinsic_stats.var), 1e-8)

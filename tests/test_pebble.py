@@ -120,7 +120,7 @@ def test_knn_distance_is_kth_neighbour_not_counting_the_state_itself():
 
 
 def test_intrinsic_reward_scores_the_batch_state_s_t_not_the_next_state():
-    buffer = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1, device="cpu")
+    buffer = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1)
     trajectory = [0.0, 1.0, 3.0, 6.0, 10.0, 15.0]  # s_0 .. s_5: transitions (s_t, s_t+1), s_5 never stored as obs
     for s, s_next in zip(trajectory, trajectory[1:]):
         buffer.add(np.array([s], np.float32), np.zeros(1, np.float32), 0.0, np.array([s_next], np.float32), False)
@@ -261,7 +261,7 @@ def test_metaworld_goals_are_reproducible_from_the_seed():
 
 def test_relabel_covers_the_whole_wrapped_buffer():
     torch.manual_seed(0)
-    buffer = pebble.ReplayBuffer(capacity=10, obs_dim=3, action_dim=2, device="cpu")
+    buffer = pebble.ReplayBuffer(capacity=10, obs_dim=3, action_dim=2)
     for i in range(25):  # wraps twice; the write position ends at 5
         buffer.add(np.full(3, i, np.float32), np.full(2, -i, np.float32), 123.0, np.zeros(3, np.float32), False)
     model = pebble.RewardEnsemble(3, 2, size=3)

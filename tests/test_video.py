@@ -83,12 +83,14 @@ def test_make_env_renders_rgb_frames(env_id):
 
 
 @pytest.mark.parametrize("script", [pebble, prefppo])
-def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script):
+def test_capture_video_may_be_switched_on_when_resuming(tmp_path, script, monkeypatch, capsys):
     """Rendering the evaluation's first episode does not change the experiment: videos may be switched on."""
-    saved = script.resolve(script.Args(output_dir=str(tmp_path)))
-    (tmp_path / "config.json").write_text(json.dumps(asdict(saved)))
-    (tmp_path / "checkpoint.pt").touch()
-    resumed = script.resolve(script.Args(resume=str(tmp_path), capture_video=True))
-    assert resumed.capture_video and asdict(resumed) == asdict(saved) | {"capture_video": True, "resume": str(tmp_path)}
-    with pytest.raises(ValueError, match="--seed cannot change"):
-        script.resolve(script.Args(resume=str(tmp_path), seed=saved.seed + 1))
+    saved = asdict(script.task_defaults("walker-walk", "oracle")) | {"output_dir": str(tmp_path)}
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    monkeypatch.setattr(sys, "argv", ["script", "--resume", str(tmp_path), "--capture-video"])
+    resumed = script.parse_args()
+    assert asdict(resumed) == saved | {"capture_video": True, "resume": str(tmp_path)}
+    monkeypatch.setattr(sys, "argv", ["script", "--resume", str(tmp_path), "--seed", "2"])
+    with pytest.raises(SystemExit):
+        script.parse_args()
+    assert "error: --seed cannot change when resuming" in capsys.readouterr().err

@@ -10,7 +10,7 @@ implementations alike (docs/parity.md):
 
 The output directory gets config.json (pebble.py's fields, with "implementation": "reference" and the reference's
 command line), bpref/ (the reference's own files), eval.csv in pebble.py's columns (wall_time from this wrapper's
-clock at each evaluation line; the reference records no std or overhead: nan) and, at the end, final_model.pt (the
+clock at each evaluation line; the reference records no std: nan) and, at the end, final_model.pt (the
 reference's actor, critic and reward models as pebble.py's state dicts) and, in the last row, the final reward
 correlation measured by pebble.py's evaluate on those networks. The reference cannot resume: a run stopped part-way
 is started afresh by the grid.
@@ -34,7 +34,7 @@ import subprocess
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Literal
 
@@ -45,8 +45,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pebble import eval_csv, save_file  # noqa: E402
-from sim_teacher import make_teacher  # noqa: E402
+from sim_teacher import make_teacher, save_file  # noqa: E402
 
 FEED_TYPES = {"uniform": 0, "disagreement": 1, "entropy": 2, "coverage": 3, "disagreement-coverage": 4,
               "entropy-coverage": 5}  # the reference's feed_type
@@ -147,14 +146,10 @@ def resolve(args: Args) -> str | None:
         return "--schedule: the reference's PrefPPO has the uniform schedule only"
     if args.algorithm == "prefppo" and args.sampler not in ("uniform", "disagreement", "entropy"):
         return "--sampler: the reference's PrefPPO has uniform, disagreement and entropy sampling only"
-    defaults = module.Args()
-    preset = module.PRESETS.get(args.env_id, module.DMC_PRESET)
-    for name in set(PEBBLE_ONLY + PREFPPO_ONLY + ("unsup_steps", "hidden_dim", "num_layers")) - set(other):
-        if getattr(args, name) is None:
-            setattr(args, name, preset.get(name, getattr(defaults, name)))
-    for key, value in preset.items():
-        if hasattr(args, key) and getattr(args, key) is None:
-            setattr(args, key, value)
+    defaults = module.task_defaults(args.env_id, args.teacher)  # the script's values for the task
+    for field in fields(Args):
+        if getattr(args, field.name) is None and field.name not in other:
+            setattr(args, field.name, getattr(defaults, field.name))
     return None
 
 
@@ -232,8 +227,7 @@ def converted_rows(bpref_dir: Path, wall_times: list[float]) -> list[dict]:
         returns = row.get("true_episode_reward") or row["episode_reward"]
         rows.append({"step": step, "episode_return": float(returns), "episode_return_std": math.nan,
                      "success_rate": math.nan, "feedback": later[0],
-                     "reward_correlation": math.nan, "wall_time": wall_times[i] if i < len(wall_times) else math.nan,
-                     "overhead_seconds": math.nan})
+                     "reward_correlation": math.nan, "wall_time": wall_times[i] if i < len(wall_times) else math.nan})
     return rows
 
 
@@ -254,13 +248,22 @@ def training_rows(log_dir: Path) -> list[dict]:
     return [{"step": step, "episode_return": float(np.mean([r for r, _ in wave])),
              "episode_return_std": float(np.std([r for r, _ in wave])), "success_rate": math.nan,
              "feedback": math.nan, "reward_correlation": math.nan,
-             "wall_time": round(max(t for _, t in wave), 1), "overhead_seconds": math.nan}
+             "wall_time": round(max(t for _, t in wave), 1)}
             for step, wave in sorted(waves.items())]
 
 
 def write_eval(out: Path, rows: list[dict]):
     """eval.csv as pebble.py writes it (its columns, written whole and atomically)."""
     save_file(str(out / "eval.csv"), eval_csv(rows))
+
+
+EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "reward_correlation", "feedback",
+                "wall_time")  # pebble.py's eval.csv
+
+
+def eval_csv(rows: list[dict]) -> bytes:
+    lines = [EVAL_COLUMNS] + [[row[column] for column in EVAL_COLUMNS] for row in rows]
+    return "".join(",".join(map(str, line)) + "\n" for line in lines).encode()
 
 
 def final_model(bpref_dir: Path, step: int) -> dict:
@@ -282,8 +285,8 @@ def final_model(bpref_dir: Path, step: int) -> dict:
 
 
 def raw_inputs(reward_model: dict) -> dict:
-    """The reward ensemble's state with the identity as its input normaliser (our RewardEnsemble's buffers without
-    --reward-input-norm; the reference's networks take their inputs as they come)."""
+    """The reward ensemble's state with the identity as its input normaliser (our RewardEnsemble's buffers before
+    the first session; the reference's networks take their inputs as they come)."""
     import torch
 
     in_dim = reward_model["members.0.0.0.weight"].shape[1]
