@@ -1,0 +1,55 @@
+"""benchmarks/reference/edits.py: the reference code's ways as text edits applied to a copy of a script. Each edited
+copy differs from the script in the edited lines only, and runs; an edit that no longer fits is refused."""
+
+import difflib
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from benchmarks.reference.edits import EDITS, edited_source
+from tests.helpers import ENV, ROOT
+
+EDIT_SCRIPT = ROOT / "benchmarks" / "reference" / "edits.py"
+CASES = [(name, script) for name, scripts in EDITS.items() for script in scripts]
+
+
+@pytest.mark.parametrize("name, script", CASES, ids=[f"{n}-{s}" for n, s in CASES])
+def test_an_edited_copy_differs_in_the_edited_lines_only(name, script, tmp_path):
+    copy = tmp_path / script
+    result = subprocess.run([sys.executable, str(EDIT_SCRIPT), name, "--write", str(copy), "--", script],
+                            capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    original = (ROOT / script).read_text().splitlines(keepends=True)
+    removed = [line[1:] for line in difflib.unified_diff(original, copy.read_text().splitlines(keepends=True), n=0)
+               if line.startswith("-") and not line.startswith("---")]
+    edited_lines = []  # the lines an edit's old text covers: whole lines, or the one line holding it
+    for old, _ in EDITS[name][script]:
+        if old.count("\n") > 1 or not old.endswith("\n"):
+            edited_lines += old.splitlines(keepends=True) if "\n" in old else [l for l in original if old in l]
+        else:
+            edited_lines.append(old)
+    assert removed and sorted(removed) == sorted(edited_lines)  # the edited lines changed, and nothing else
+
+
+def test_an_edit_that_no_longer_fits_is_refused():
+    with pytest.raises(ValueError, match="does not fit"):
+        edited_source("pebble.py", ["raw-reward-inputs", "raw-reward-inputs"])  # its text is gone after once
+    with pytest.raises(ValueError, match="no edit 'nonsense' for pebble.py"):
+        edited_source("pebble.py", ["nonsense"])
+
+
+def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(tmp_path):
+    out = tmp_path / "raw"
+    flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "700", "--seed-steps", "200", "--unsup-steps", "200",
+             "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
+             "--eval-every", "700", "--hidden-dim", "32", "--batch-size", "32", "--reward-epochs", "3",
+             "--reward-batch-size", "32", "--eval-episodes", "1", "--output-dir", str(out)]
+    result = subprocess.run([sys.executable, str(EDIT_SCRIPT), "raw-reward-inputs", "--", "pebble.py", *flags],
+                            capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.count("reward model trained on") == 2
+    saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]
+    assert not saved["input_mean"].any() and (saved["input_std"] == 1).all()  # the identity: raw inputs
+    assert saved["input_clip"].item() == float("inf")
