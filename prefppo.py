@@ -155,8 +155,7 @@ PRESETS = {
 
 # Environments
 class DMCEnv(gym.Env):
-    """A dm_control suite task as a Gymnasium env with flat observations; reset(seed=s) seeds the
-    task's random state."""
+    """A dm_control task as a Gymnasium env with flat observations."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
@@ -190,7 +189,7 @@ class DMCEnv(gym.Env):
 
 
 class MetaWorldSeeding(gym.Wrapper):
-    """reset(seed=s) seeds Meta-World's generator of object and goal positions."""
+    """reset(seed=s) seeds the object and goal positions."""
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
@@ -201,7 +200,7 @@ class MetaWorldSeeding(gym.Wrapper):
 def env_kind(env_id):
     import metaworld
 
-    with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display"
+    with warnings.catch_warnings(action="ignore"):
         from dm_control import suite
     if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
@@ -211,7 +210,7 @@ def env_kind(env_id):
 
 
 def make_env(env_id, render_mode=None):
-    """(env, episode length T): actions in [-1, 1], float32 observations, every reset seeded."""
+    """(env, episode length T), actions in [-1, 1]."""
     kind = env_kind(env_id)
     if kind == "dmc":
         env = DMCEnv(*env_id.split("-", 1), render_mode)
@@ -219,8 +218,8 @@ def make_env(env_id, render_mode=None):
     elif kind == "metaworld":
         env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3",
                        render_mode=render_mode, disable_env_checker=True)
-        env.get_wrapper_attr("toggle_terminate_on_success")(False)  # B-Pref: 500-step episodes
-        # Reference code (utils.make_metaworld_env): a fresh hidden goal from the whole range
+        env.get_wrapper_attr("toggle_terminate_on_success")(False)
+        # Reference code: a fresh hidden goal at each reset
         env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
         env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
         env.unwrapped._partially_observable = True
@@ -245,12 +244,12 @@ def make_env(env_id, render_mode=None):
     return env, episode_len
 
 
-TRAIN_STREAM = 0  # episode seeds of the training and the evaluation env
+TRAIN_STREAM = 0  # episode seeds of the training and evaluation envs
 EVAL_STREAM = 1
 
 
 def numpy_seeds(seed):
-    """Streams of the query sampler, the teacher and the seed steps' random actions."""
+    """Streams of the sampler, the teacher and the seed steps' actions."""
     return np.random.SeedSequence(seed).spawn(3)
 
 
@@ -276,14 +275,12 @@ def orthogonal_init(module, gain):
 
 
 def sde_std(latent, log_std, eps=1e-6):
-    """gSDE (SB3's StateDependentNoiseDistribution): the std of latent @ W, W_ij ~ N(0,
-    exp(log_std_ij)^2)."""
+    """gSDE: the std of latent @ W, W_ij ~ N(0, exp(log_std_ij)^2) (SB3)."""
     return torch.sqrt(latent**2 @ log_std.exp() ** 2 + eps)
 
 
 class Actor(nn.Module):
-    """SB3's PPO policy: a tanh MLP, its last hidden features (the latent) feed a linear mean; gSDE:
-    env n acts mean + latent @ W_n."""
+    """SB3's PPO policy; gSDE: env n acts mean + latent @ W_n (latent: the last hidden layer)."""
 
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers, use_sde):
         super().__init__()
@@ -305,7 +302,6 @@ class Actor(nn.Module):
         return torch.distributions.Normal(mean, std, validate_args=False), latent
 
     def sample(self, obs, step, sde_freq):
-        """Actions and log-probabilities at a rollout's step; new W_n every sde_freq steps."""
         distribution, latent = self.distribution(obs)
         if not self.use_sde:
             action = distribution.sample()
@@ -319,7 +315,6 @@ class Actor(nn.Module):
 
 
 def mean_policy(actor, obs_stats, device):
-    """The policy evaluated: an observation -> the mean action, clipped as the env clips it."""
     return lambda obs: actor.policy(obs_stats.normalize(obs).to(device)).clamp(-1, 1)
 
 
@@ -330,13 +325,12 @@ def make_critic(obs_dim, hidden_dim, num_layers):
 
 
 def reset_value_head(critic):
-    """Reference code (reset_value) after the first reward update: a new output layer."""
+    """Reference code (reset_value): a new output layer."""
     orthogonal_init(critic[-1], 1.0)
 
 
 class RewardEnsemble(nn.Module):
-    """Appendix, reward model: 3 x 256 LeakyReLU layers, tanh output; (..., obs+action) -> each
-    member's r_hat (members, ..., 1), observations standardised by D's states, clipped to +-10."""
+    """Appendix, reward model: 3 x 256 LeakyReLU, tanh output; inputs standardised by D."""
 
     def __init__(self, obs_dim, action_dim, size):
         super().__init__()
@@ -364,12 +358,12 @@ class RewardEnsemble(nn.Module):
 
 # Algorithm
 def clip_range(clip_coef, global_step, total_timesteps):
-    """Reference code (SB3's linear_schedule): clip_coef, linearly down to 0."""
+    """Reference code (SB3's linear_schedule)."""
     return clip_coef * max(0.0, 1.0 - global_step / total_timesteps)
 
 
 def ppo_policy_loss(log_prob, old_log_prob, advantages, clip):
-    """Appendix Eq. (4), PPO's clipped surrogate; (loss, ratio)."""
+    """Appendix Eq. (4)."""
     ratio = (log_prob - old_log_prob).exp()
     clipped = ratio.clamp(1 - clip, 1 + clip)
     return torch.max(-advantages * ratio, -advantages * clipped).mean(), ratio
@@ -395,7 +389,7 @@ def adam(params, lr, eps=1e-8):
 
 
 def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, clip, args):
-    """Appendix Eqs. (4)-(5) on a minibatch (advantages normalised in it), and its statistics."""
+    """Appendix Eqs. (4)-(5), advantages normalised per minibatch (SB3)."""
     distribution, _ = actor.distribution(obs)
     adv = advantages
     if len(obs) > 1:
@@ -425,8 +419,7 @@ def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optim
 
 
 def compute_gae(rewards, values, next_values, ends, terminated, gamma, gae_lambda):
-    """GAE over a (steps, envs) rollout; next_values: V of the states reached. Time limits are
-    bootstrapped: only a termination drops V."""
+    """GAE over a (steps, envs) rollout; only a termination drops V(next state)."""
     advantages = torch.zeros_like(rewards)
     last = torch.zeros_like(rewards[0])
     for t in reversed(range(len(rewards))):
@@ -437,7 +430,7 @@ def compute_gae(rewards, values, next_values, ends, terminated, gamma, gae_lambd
 
 
 def knn_distance(states, reference, k):
-    """Eq. (8) without the log: distance to the k-th nearest neighbour other than the state."""
+    """Eq. (8) without the log: distance to the k-th nearest other state."""
     distances = torch.cdist(states, reference)
     nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
     return nearest[:, -1:].contiguous()
@@ -445,7 +438,7 @@ def knn_distance(states, reference, k):
 
 @dataclass
 class RunningMeanStd:
-    """Of numpy rows (Chan et al.'s parallel update), as float64 tensors."""
+    """Chan et al.'s parallel update, over numpy rows."""
 
     mean: torch.Tensor
     var: torch.Tensor
@@ -463,14 +456,14 @@ class RunningMeanStd:
         self.count = total
 
     def normalize(self, x):
-        """Reference code (VecNormalize): clipped to +-10."""
+        """Reference code (VecNormalize)."""
         return ((torch.from_numpy(x) - self.mean) / (self.var + 1e-8).sqrt()).clamp(-10, 10).float()
 
 
 @dataclass
 class KnnStateEntropy(RunningMeanStd):
-    """Algorithm 2's r_int(s_t) among all pre-training states so far (reference code), over the
-    distances' running std."""
+    """Algorithm 2's r_int(s_t) among all pre-training states (reference code), over its running
+    std."""
 
     k: int = 5
     states: torch.Tensor = None
@@ -483,7 +476,7 @@ class KnnStateEntropy(RunningMeanStd):
 
 
 def coverage_features(inputs0, inputs1, obs_dim):
-    """Appendix, coverage sampling: both segments' states, flattened and concatenated."""
+    """Appendix, coverage sampling: both segments' states."""
     states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
     return torch.cat(states, 1).cpu().numpy()
 
@@ -503,7 +496,7 @@ def preference_accuracy(segment_returns, y):
 
 
 def train_reward(reward_model, optimizer, preferences, args):
-    """Algorithm 3, reward learning: up to reward_epochs passes over D, until 97% accuracy."""
+    """Algorithm 3, reward learning (reference: stops at 97% accuracy)."""
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
     y = preferences["y"]
@@ -531,15 +524,11 @@ def train_reward(reward_model, optimizer, preferences, args):
 
 
 def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng):
-    """SAMPLE() of Algorithm 3: `size` pairs of segments, chosen by the sampler among size x
-    candidate_multiplier; the pairs' arrays and both segments' (obs, action) inputs."""
+    """SAMPLE() of Algorithm 3: the chosen pairs and their (obs, action) inputs."""
     n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
     candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
-    device = preferences["y"].device
-    inputs0 = np.concatenate([candidates["obs0"], candidates["actions0"]], -1)
-    inputs0 = torch.as_tensor(inputs0, device=device)
-    inputs1 = np.concatenate([candidates["obs1"], candidates["actions1"]], -1)
-    inputs1 = torch.as_tensor(inputs1, device=device)
+    inputs0, inputs1 = (torch.as_tensor(np.concatenate([candidates[f"obs{i}"], candidates[
+        f"actions{i}"]], -1), device=preferences["y"].device) for i in (0, 1))
     chosen = np.arange(size)
     if sampler != "uniform":
         obs_dim = candidates["obs0"].shape[-1]
@@ -556,37 +545,32 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
     return segments, inputs0[chosen], inputs1[chosen]
 
 
+def add_labels(preferences, inputs0, inputs1, y, keep):
+    """D grows by the kept labels and both segments' (obs, action) inputs."""
+    new = {"inputs0": inputs0[keep], "inputs1": inputs1[keep], "y": torch.tensor(y[keep])}
+    for key in preferences:
+        preferences[key] = torch.cat([preferences[key], new[key].float().to(inputs0.device)])
+
+
 def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
                      reward_optimizer, teacher, rng, writer, episode_len):
-    """Algorithm 3's feedback session: queries, the teacher's labels (saved at once), D grows by
-    the kept ones, r_hat learns on D. Returns the size of D."""
-    sampler = args.sampler if progress.pretrained else "uniform"  # reference: the first uniform
+    """Algorithm 3, lines 9-13: queries, labels, D, reward learning. Returns |D|."""
+    sampler = args.sampler if progress.pretrained else "uniform"  # reference: first uniform
     segments, inputs0, inputs1 = sample_queries(sampler, size, episodes, reward_model, preferences,
                                                 args, rng)
-    # Appendix, adaptive thresholds: eps * H / T * mean true return of recent episodes
+    # Appendix, adaptive thresholds
     mean_return = float(np.mean(progress.recent_returns))
     teacher.set_thresholds(mean_return, args.segment_len, episode_len)
-    queries = {"step": step}  # what a person sees: each segment replayed from its episode
-    for side in (0, 1):
-        pool = [episodes[e] for e in segments[f"episode{side}"]]
-        queries[f"seed{side}"] = np.array([episode[3] for episode in pool])
-        queries[f"start{side}"] = segments[f"start{side}"]
-        queries[f"actions{side}"] = pad_sequence([ep[1] for ep in pool], batch_first=True).numpy()
-    y, keep = teacher.label(segments["rewards0"], segments["rewards1"], queries)
+    y, keep = teacher.label(segments["rewards0"], segments["rewards1"], segments | {"step": step})
     save_labels(args.output_dir, progress.sessions_done, step=step, y=y, keep=keep,
                 threshold_scale=mean_return * args.segment_len / episode_len, **segments)
     progress.feedback_used += size
     progress.sessions_done += 1
     progress.next_feedback_step = step + args.feedback_every
-    kept = torch.as_tensor(keep, device=inputs0.device)
-    y_kept = torch.as_tensor(y[keep], dtype=torch.float32, device=inputs0.device)
-    new = {"inputs0": inputs0[kept], "inputs1": inputs1[kept], "y": y_kept}
-    for key in preferences:
-        preferences[key] = torch.cat([preferences[key], new[key]])
+    add_labels(preferences, inputs0, inputs1, y, keep)
     writer.add_scalar("feedback/labels", progress.feedback_used, step)
     writer.add_scalar("feedback/skipped", (~keep).sum(), step)
-    writer.add_scalar("feedback/equal", (y[keep] == 0.5).sum(), step)
-    if len(preferences["y"]) == 0:  # every query so far was skipped
+    if len(preferences["y"]) == 0:  # all skipped so far
         print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
         return 0
     states = torch.cat([preferences["inputs0"], preferences["inputs1"]], 1)
@@ -601,8 +585,7 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
 
 
 def restart_env(env, args, progress, i):
-    """Env i at its running episode's step: reset with its seed (episode episodes[i] * num_envs + i
-    of the training stream), its actions again (MuJoCo is deterministic)."""
+    """Env i's running episode again from its reset seed and actions (MuJoCo is deterministic)."""
     obs, _ = env.reset(seed=train_seed(args, progress, i))
     for action in progress.running_episodes[i][1]:
         obs = env.step(np.array(action, np.float32))[0]
@@ -614,8 +597,7 @@ def train_seed(args, progress, i):
 
 
 def step_envs(envs, kept_obs, actions, args, progress, episodes, writer, step):
-    """A step of every env; an ended episode goes to the query pool. Returns the next
-    observations, the states reached, true rewards, terminations and episode ends."""
+    """A step of every env; an ended episode goes to the query pool, with its reset seed."""
     results = [env.step(action) for env, action in zip(envs, actions)]
     reached, rewards, terminated, truncated = map(np.array, list(zip(*results))[:4])
     if not (np.isfinite(rewards).all() and np.isfinite(reached).all()):
@@ -624,7 +606,7 @@ def step_envs(envs, kept_obs, actions, args, progress, episodes, writer, step):
     for i, running in enumerate(progress.running_episodes):
         for part, value in zip(running, (kept_obs, actions, rewards)):
             part.append(value[i].tolist())
-        if terminated[i] or truncated[i]:  # with its reset seed
+        if terminated[i] or truncated[i]:
             episodes.append((*map(torch.tensor, running), train_seed(args, progress, i)))
             progress.recent_returns = (progress.recent_returns + [sum(running[2])])[-100:]
             writer.add_scalar("charts/episodic_return", sum(running[2]), step)
@@ -635,8 +617,7 @@ def step_envs(envs, kept_obs, actions, args, progress, episodes, writer, step):
 
 
 def evaluate(policy, reward_model, env, seeds, device):
-    """Episodes of the policy with the true reward (B-Pref's metric), Meta-World success, and the
-    correlation of r_hat with the true reward."""
+    """True return (B-Pref's metric), success, r_hat's correlation with the true reward."""
     returns = []
     successes = []
     true_rewards = []
@@ -686,15 +667,14 @@ RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's t
 ]
 
 def task_defaults(env_id, teacher):
-    """Args with the task's preset and the teacher's fields (sim_teacher.TEACHERS)."""
+    """Args with the task's preset and the teacher's fields."""
     preset = PRESETS.get(env_id.removesuffix("-v3")) or PRESETS.get(env_kind(env_id), {})
     teacher_fields = {f"teacher_{k}": v for k, v in TEACHERS.get(teacher, {}).items()}
     return Args(env_id=env_id, **preset, **teacher_fields)
 
 
 def parse_args():
-    """tyro's command line, whose defaults are the task's preset and the teacher's fields (or the
-    resumed run's configuration); its error box as one line."""
+    """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
     pre = argparse.ArgumentParser(add_help=False)
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
@@ -703,16 +683,20 @@ def parse_args():
     if given.resume:
         try:
             with open(os.path.join(given.resume, "config.json")) as f:
-                default = Args(**json.load(f))
-        except (OSError, ValueError, TypeError) as error:
-            fail(f"--resume {given.resume!r}: no configuration of this script there ({error})")
+                saved = json.load(f)
+        except (OSError, ValueError) as error:
+            fail(f"--resume {given.resume!r}: no config.json there ({error})")
+        if set(saved) != {f.name for f in fields(Args)}:
+            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
+        default = Args(**saved)
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
             args = tyro.cli(Args, default=default)
     except SystemExit as exit_:
         if exit_.code:  # the box's text up to its first rule
-            text = "\n".join(line.strip("│╭╰╮╯ ") for line in captured.getvalue().splitlines()[1:])
+            lines = captured.getvalue().splitlines()[1:]
+            text = "\n".join(line.strip("│╭╰╮╯ ") for line in lines)
             fail(" ".join(text.split("\n─")[0].split()))
         raise
     if given.resume:
@@ -744,7 +728,7 @@ def check_args(args, episode_len):
 
 
 def check_video(eval_env):
-    """--capture-video: one frame rendered now rather than a failure at the first evaluation."""
+    """--capture-video: render one frame now."""
     try:
         import moviepy  # noqa: F401
 
@@ -754,23 +738,7 @@ def check_video(eval_env):
     except Exception as error:
         print(f"error: --capture-video cannot render ({type(error).__name__}); it needs moviepy "
               "and, without a display, MUJOCO_GL=egl or osmesa", file=sys.stderr, flush=True)
-        os._exit(2)  # not sys.exit: the half-made GL context's finalizer would print a traceback
-
-
-def labelled_dataset(sessions, segment_len, input_dim, device):
-    """D: both segments' (observation, action) per step and the label of each kept query."""
-    data = {"inputs0": [np.zeros((0, segment_len, input_dim))], "y": [np.zeros(0)]}
-    data["inputs1"] = data["inputs0"][:]
-    for s in sessions:
-        for side in (0, 1):
-            inputs = np.concatenate([s[f"obs{side}"], s[f"actions{side}"]], -1)[s["keep"]]
-            if inputs.shape[1:] != (segment_len, input_dim):
-                raise ValueError(f"--labels-from: its segments ({inputs.shape[1:]}) do not fit "
-                                 f"this run ({segment_len} steps of {input_dim} inputs)")
-            data[f"inputs{side}"].append(inputs)
-        data["y"].append(s["y"][s["keep"]])
-    return {key: torch.tensor(np.concatenate(value), dtype=torch.float32, device=device)
-            for key, value in data.items()}
+        os._exit(2)  # not sys.exit: the GL context's finalizer would print a traceback
 
 
 def snapshot(parts):
@@ -785,7 +753,7 @@ def snapshot(parts):
             state[name] = part.bit_generator.state
         elif is_dataclass(part):
             state[name] = asdict(part)
-        else:  # a dict of tensors, the query pool
+        else:  # a tensor, a dict of tensors, the query pool
             state[name] = list(part) if isinstance(part, deque) else part
     return state
 
@@ -807,18 +775,20 @@ def restore(parts, state, device):
             part.extend(state[name])
 
 
+def check_finite(losses):
+    """A NaN or infinity stops the run before a checkpoint could hold it."""
+    if bad := [name for name, value in losses.items() if not math.isfinite(value)]:
+        raise FloatingPointError(f"non-finite {', '.join(bad)}")
+
+
 def save_checkpoint(path, parts):
-    data = io.BytesIO()  # in memory first: a full disk is then a plain OSError
+    data = io.BytesIO()
     torch.save(snapshot(parts), data)
     save_file(path, data.getvalue())
 
 
-EVAL_COLUMNS = ("step", "episode_return", "episode_return_std", "success_rate", "feedback",
-                "reward_correlation", "wall_time")
-
-
 def evaluation(args, step, progress, policy, reward_model, eval_env, writer, device):
-    """eval_episodes episodes of the mean policy: a row of eval.csv, TensorBoard."""
+    """A row of eval.csv."""
     if args.capture_video:
         eval_env.name_prefix = f"step_{step}"
     first = len(progress.eval_rows) * args.eval_episodes
@@ -830,14 +800,13 @@ def evaluation(args, step, progress, policy, reward_model, eval_env, writer, dev
     wall_time = round(time.time() - progress.start_time, 1)
     progress.eval_rows.append({"step": step, **result, "feedback": progress.feedback_used,
                                "wall_time": wall_time})
-    rows = [EVAL_COLUMNS] + [[row[c] for c in EVAL_COLUMNS] for row in progress.eval_rows]
-    save_file(os.path.join(args.output_dir, "eval.csv"),
-              "".join(",".join(map(str, row)) + "\n" for row in rows).encode())
-    for name in ("episode_return", "success_rate", "reward_correlation"):
-        writer.add_scalar(f"eval/{name}", result[name], step)
+    lines = [progress.eval_rows[0]] + [map(str, row.values()) for row in progress.eval_rows]
+    save_file(os.path.join(args.output_dir, "eval.csv"), "".join(
+        ",".join(line) + "\n" for line in lines).encode())
+    for name, value in result.items():
+        writer.add_scalar(f"eval/{name}", value, step)
     writer.add_scalar("charts/SPS", step / wall_time, step)
-    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS",
-          flush=True)
+    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS")
 
 
 @dataclass
@@ -862,27 +831,35 @@ if __name__ == "__main__":
     try:
         env, episode_len = make_env(args.env_id)
         eval_env, _ = make_env(args.env_id, "rgb_array" if args.capture_video else None)
+        if args.capture_video:
+            check_video(eval_env)
         check_args(args, episode_len)
         sampler_seed, teacher_seed, _ = numpy_seeds(args.seed)
-        teacher_fields = {k.removeprefix("teacher_"): v for k, v in asdict(args).items()
-                          if k.startswith("teacher_")}
-        teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, **teacher_fields)
+        episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool
+        teacher_fields = {k[8:]: v for k, v in vars(args).items() if k.startswith("teacher_")}
+        teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, episodes,
+                               **teacher_fields)
         imported = load_labels(args.labels_from) if args.labels_from and not args.resume else []
         obs_dim = env.observation_space.shape[0]
         action_dim = env.action_space.shape[0]
-        preferences = labelled_dataset(imported, args.segment_len, obs_dim + action_dim, device)
-        if args.resume and not os.path.isfile(os.path.join(args.output_dir, "checkpoint.pt")):
+        empty = torch.zeros(0, args.segment_len, obs_dim + action_dim, device=device)
+        preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device)}
+        for s in imported:  # --labels-from
+            inputs = [np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1) for i in (0, 1)]
+            if inputs[0].shape[1:] != empty.shape[1:]:
+                raise ValueError(f"--labels-from: segments do not fit this run's {empty.shape[1:]}")
+            add_labels(preferences, *map(torch.tensor, inputs), s["y"], s["keep"])
+        checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
+        if args.resume and not os.path.isfile(checkpoint_path):
             raise ValueError(f"--resume {args.output_dir!r}: no checkpoint.pt there")
         if not args.resume and os.path.isdir(args.output_dir) and os.listdir(args.output_dir):
             raise ValueError(f"--output-dir {args.output_dir!r} already holds a run")
         os.makedirs(os.path.join(args.output_dir, "labels"), exist_ok=True)
         if not args.resume:
-            save_file(os.path.join(args.output_dir, "config.json"),
-                      json.dumps(asdict(args)).encode())
+            save_file(os.path.join(args.output_dir, "config.json"), json.dumps(vars(args)).encode())
     except (ValueError, OSError) as error:
         fail(str(error))
     if args.capture_video:
-        check_video(eval_env)
         eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(args.output_dir, "videos"),
                                             episode_trigger=lambda e: e % args.eval_episodes == 0)
     if args.track:
@@ -910,7 +887,7 @@ if __name__ == "__main__":
     knn_reward = KnnStateEntropy(torch.zeros(1).double(), torch.ones(1).double(), k=args.knn_k,
                                  states=torch.zeros(0, obs_dim, device=device))
     loss_fn = torch.compile(ppo_loss) if args.compile else ppo_loss
-    # Feedback sessions at rollout ends, from the end of pre-training, every feedback_every steps
+    # Feedback sessions at rollout ends, from the end of pre-training
     rollout = args.num_envs * args.num_steps
     steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session,
@@ -919,14 +896,12 @@ if __name__ == "__main__":
                              args.total_timesteps - 1, rollout)
     if planned < args.max_feedback and not args.ground_truth_reward:
         print(f"note: only {planned} of the {args.max_feedback} labels fit in the run")
-    episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool
     progress = Progress(episodes=[0] * args.num_envs, next_feedback_step=args.unsup_steps,
                         running_episodes=[([], [], []) for _ in envs], start_time=time.time())
     parts = {"progress": progress, "actor": actor, "critic": critic, "reward_model": reward_model,
              "optimizer": optimizer, "reward_optimizer": reward_optimizer, "teacher": teacher,
              "obs_stats": obs_stats, "knn_reward": knn_reward, "preferences": preferences,
              "rng": rng, "episodes": episodes}
-    checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
     if args.resume:
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
         if progress.global_step >= args.total_timesteps:
@@ -934,8 +909,7 @@ if __name__ == "__main__":
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
         progress.start_time += time.time() - os.path.getmtime(checkpoint_path)
     raw_obs = np.stack([restart_env(env, args, progress, i) for i, env in enumerate(envs)])
-    # The rollout: observations raw and normalised (the policy's), actions sampled and clipped
-    # (executed), V of the states reached
+    # The rollout: raw and normalised observations, sampled and clipped (executed) actions
     shape = (args.num_steps, args.num_envs)
     raw_obs_buf, obs_buf = torch.zeros(2, *shape, obs_dim, device=device)
     actions_buf, env_actions_buf = torch.zeros(2, *shape, action_dim, device=device)
@@ -948,7 +922,7 @@ if __name__ == "__main__":
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (unsupervised pre-training)
     try:
         while progress.global_step < args.total_timesteps:
-            # Feedback session; after the first reward update, the value head reset
+            # Feedback session; after the first reward update, the value reset
             global_step = progress.global_step
             new_reward = args.ground_truth_reward and global_step >= args.unsup_steps
             if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
@@ -992,7 +966,7 @@ if __name__ == "__main__":
             # The reward PPO maximises: r_int (pre-training), r_hat or the true reward
             rewards = true_rewards_buf if progress.pretrained else intrinsic_buf
             if progress.pretrained and not args.ground_truth_reward:
-                with torch.no_grad():  # the ensemble's mean
+                with torch.no_grad():
                     obs_actions = torch.cat([raw_obs_buf, env_actions_buf], -1)
                     rewards = reward_model(obs_actions).mean(0)[..., 0]
                 pair = torch.stack([rewards.flatten(), true_rewards_buf.flatten()])
@@ -1012,8 +986,7 @@ if __name__ == "__main__":
             losses["explained_variance"] = explained
             for name, value in losses.items():
                 writer.add_scalar(f"losses/{name}", value, progress.global_step)
-            if not all(map(math.isfinite, losses.values())):
-                raise FloatingPointError(f"non-finite losses {losses}")
+            check_finite(losses)
 
             if (progress.global_step % args.eval_every < rollout
                     or progress.global_step >= args.total_timesteps):
