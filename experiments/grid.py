@@ -37,10 +37,12 @@ sys.path.insert(0, str(ROOT))
 
 from samplers import SAMPLERS, SCHEDULES  # noqa: E402
 from sim_teacher import TEACHERS  # noqa: E402
+from benchmarks.reference.edits import EDITS  # noqa: E402
 
 ALGORITHMS = ("pebble", "prefppo")
 IMPLEMENTATIONS = ("ours", "reference")  # reference: rll-research/BPref through benchmarks/reference/run.py
 REFERENCE_RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
+EDITS_RUNNER = ROOT / "benchmarks" / "reference" / "edits.py"
 # Flags the grid sets for each run; --flags must not set them too
 GRID_FLAGS = ("--env-id", "--seed", "--teacher", "--sampler", "--schedule", "--max-feedback", "--feedback-per-session",
               "--ground-truth-reward", "--output-dir", "--resume")
@@ -75,6 +77,8 @@ class Grid:
     """more flags for pebble.py runs only (one string, as --flags)"""
     prefppo_flags: str = ""
     """more flags for prefppo.py runs only (one string, as --flags)"""
+    edits: tuple[str, ...] = ()
+    """the reference code's ways, applied to copies of our scripts (benchmarks/reference/edits.py)"""
     root: str = "runs/grid"
     """folder of the runs (on a Ray cluster: a folder every node sees at the same path)"""
     backend: Literal["local", "ray"] = "local"
@@ -150,6 +154,8 @@ class Run:
     flags: tuple[str, ...]
     """the script's flags, without --output-dir and --resume"""
     implementation: str = "ours"
+    edits: tuple[str, ...] = ()
+    """benchmarks/reference/edits.py's edits of the script that this run runs"""
 
     def command(self, run_dir: Path, resume: bool) -> list[str]:
         """The script and its flags (run with the Python of the machine that runs it); the same flags again on resume,
@@ -158,7 +164,9 @@ class Run:
         if self.implementation == "reference":
             return [str(REFERENCE_RUNNER), "--algorithm", self.algorithm, *self.flags, "--output-dir", str(run_dir)]
         # a resumed run takes its directory from --resume (the folder may have moved since)
-        return [str(ROOT / f"{self.algorithm}.py"), *self.flags, "--resume" if resume else "--output-dir", str(run_dir)]
+        script = [str(EDITS_RUNNER), *self.edits, "--"] if self.edits else []
+        return [*script, str(ROOT / f"{self.algorithm}.py"), *self.flags, "--resume" if resume else "--output-dir",
+                str(run_dir)]
 
 
 def parse_budget(budget: str) -> list[str]:
@@ -180,6 +188,10 @@ def check(grid: Grid) -> str | None:
         unknown = [value for value in given if value not in known]
         if unknown:
             return f"--{name} {unknown[0]!r} is not one of {', '.join(known)}"
+    for edit in grid.edits:
+        unfit = [algorithm for algorithm in grid.algorithms if f"{algorithm}.py" not in EDITS.get(edit, {})]
+        if unfit:
+            return f"--edits {edit!r} is not an edit of {unfit[0]}.py (known: {', '.join(EDITS)})"
     if "reference" in grid.implementations and "prefppo" in grid.algorithms and grid.ground_truth:
         return "--implementations reference runs PrefPPO, not PPO on the true reward: add --no-ground-truth"
     if not (grid.ground_truth or grid.preference_runs):
@@ -230,12 +242,13 @@ def expand_one(grid: Grid, implementation: str) -> list[Run]:
     runs, prefix = [], "" if implementation == "ours" else f"{implementation}__"
     for algorithm in grid.algorithms:
         extra = shlex.split(grid.flags) + shlex.split(getattr(grid, f"{algorithm}_flags"))
+        edits = grid.edits if implementation == "ours" else ()
         for env_id in grid.env_ids:
             if grid.ground_truth:
                 for seed in grid.seeds:
                     name = safe_name(f"{prefix}{algorithm}__{env_id}__ground-truth__s{seed}")
                     runs.append(Run(name, algorithm, ("--env-id", env_id, "--seed", str(seed), "--ground-truth-reward",
-                                                      *extra), implementation))
+                                                      *extra), implementation, edits))
             for teacher in grid.teachers if grid.preference_runs else ():
                 for budget in grid.budgets:
                     for sampler in grid.samplers:
@@ -245,7 +258,7 @@ def expand_one(grid: Grid, implementation: str) -> list[Run]:
                                                  f"{budget.replace('/', '-')}__{sampler}__{schedule}__s{seed}")
                                 flags = ["--env-id", env_id, "--seed", str(seed), "--teacher", teacher,
                                          *parse_budget(budget), "--sampler", sampler, "--schedule", schedule, *extra]
-                                runs.append(Run(name, algorithm, tuple(flags), implementation))
+                                runs.append(Run(name, algorithm, tuple(flags), implementation, edits))
     return runs
 
 

@@ -100,6 +100,17 @@ def test_bad_grid_is_one_error_line_before_any_run(tmp_path, flags, message):
     assert not (tmp_path / "grid").exists()
 
 
+def test_edits_run_our_scripts_through_the_edits_runner_and_are_checked(tmp_path):
+    result = run_grid(tmp_path / "grid", "--teachers", "oracle", "--seeds", "1", "--no-ground-truth",
+                      "--edits", "raw-reward-inputs", "--dry-run")
+    assert result.returncode == 0, result.stderr
+    [command] = [shlex.split(line) for line in result.stdout.splitlines() if line.startswith("OMP_NUM_THREADS")]
+    assert command[2].endswith("benchmarks/reference/edits.py") and command[3:5] == ["raw-reward-inputs", "--"]
+    assert command[5].endswith("pebble.py") and "--teacher" in command
+    wrong = run_grid(tmp_path / "grid", "--algorithms", "prefppo", "--edits", "raw-reward-input")
+    assert wrong.returncode == 2 and "--edits 'raw-reward-input' is not an edit of prefppo.py" in wrong.stderr
+
+
 def test_dry_run_prints_every_command_and_starts_nothing(tmp_path):
     result = run_grid(tmp_path / "grid", *TINY_GRID, "--dry-run")
     assert result.returncode == 0, result.stderr
