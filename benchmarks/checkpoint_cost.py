@@ -17,6 +17,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pebble  # noqa: E402
+import sim_teacher  # noqa: E402
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -26,7 +27,7 @@ if __name__ == "__main__":
 
     env, _ = pebble.make_env("walker-walk")
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    buffer = pebble.ReplayBuffer(args.transitions, obs_dim, action_dim, "cpu")
+    buffer = pebble.ReplayBuffer(args.transitions, obs_dim, action_dim)
     for name in pebble.Batch._fields:
         getattr(buffer, name).normal_()
     buffer.size = args.transitions
@@ -49,7 +50,7 @@ if __name__ == "__main__":
             start = time.perf_counter()
             data = io.BytesIO()
             torch.save(checkpoint, data)
-            pebble.save_file(path, data.getvalue())
+            sim_teacher.save_file(path, data.getvalue())
             writes.append(time.perf_counter() - start)
             start = time.perf_counter()
             torch.load(path, weights_only=True)

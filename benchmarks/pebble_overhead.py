@@ -84,7 +84,7 @@ def reward_unit_costs(repeats) -> dict:
         lambda: pebble.train_reward(model, optimizer, {"inputs0": inputs0, "inputs1": inputs1, "y": y}, config),
         repeats) / labels
     transitions = 100_000
-    buffer = pebble.ReplayBuffer(transitions, OBS_DIM, ACTION_DIM, "cpu")
+    buffer = pebble.ReplayBuffer(transitions, OBS_DIM, ACTION_DIM)
     buffer.obs.normal_(), buffer.actions.uniform_(-1, 1)
     buffer.size = transitions
     costs["relabel_per_transition"] = median_seconds(lambda: pebble.relabel(buffer, model), repeats) / transitions

@@ -96,7 +96,7 @@ def sac_variants(hidden, layers, batch, device, env_steps: bool):
     env, _ = pebble.make_env("walker-walk")
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     torch.manual_seed(0)
-    buffer = pebble.ReplayBuffer(100_000, obs_dim, action_dim, device)
+    buffer = pebble.ReplayBuffer(100_000, obs_dim, action_dim).to(device)
     obs, _ = env.reset(seed=0)
     rng = np.random.default_rng(0)
 
@@ -140,9 +140,9 @@ def sac_variants(hidden, layers, batch, device, env_steps: bool):
 def ppo_variants(device, updates: int):
     """One epoch of minibatch updates over a walker-walk rollout of the PrefPPO DMC preset (script, script with
     --compile, plain)."""
-    preset = prefppo.DMC_PRESET
-    obs_dim, action_dim, hidden, layers = 24, 6, prefppo.Args.hidden_dim, prefppo.Args.num_layers
-    rollout, minibatch = preset["num_envs"] * preset["num_steps"], preset["minibatch_size"]
+    preset = prefppo.task_defaults("walker-walk", "oracle")
+    obs_dim, action_dim, hidden, layers = 24, 6, preset.hidden_dim, preset.num_layers
+    rollout, minibatch = preset.num_envs * preset.num_steps, preset.minibatch_size
     torch.manual_seed(0)
     obs, actions = torch.randn(rollout, obs_dim, device=device), torch.randn(rollout, action_dim, device=device)
     logprobs, advantages, returns = (torch.randn(rollout, device=device) for _ in range(3))
