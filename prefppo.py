@@ -46,19 +46,19 @@ class Args:
     output_dir: str = ""
     """where the run's files go (default: runs/<run name>)"""
     checkpoint_every: int = 50000
-    """environment steps between checkpoints (0: only at the end, on SIGTERM and SIGINT)"""
+    """steps between checkpoints (0: at the end and on SIGTERM/SIGINT)"""
     resume: str = ""
-    """continue the run in this directory from its checkpoint, with its configuration"""
+    """continue the run in this directory"""
     labels_from: str = ""
-    """start D with an earlier run's labels (its directory, its labels/ or one .npz)"""
+    """start D with an earlier run's labels (run directory or .npz)"""
 
-    # Algorithm specific arguments: walker-walk's values, other tasks' in PRESETS
+    # Algorithm specific arguments (walker-walk's; PRESETS: the others')
     env_id: str = "walker-walk"
-    """DMC domain-task, Meta-World v3 task (button-press), or Gymnasium id (module:id)"""
+    """DMC domain-task, Meta-World task or Gymnasium id"""
     total_timesteps: int = 4_000_000
     """total environment steps"""
     teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic", "human"] = "oracle"
-    """simulated teacher (paper Section 3.3), or human: a person, in label_server.py's page"""
+    """simulated teacher (Section 3.3), or human (label_server.py)"""
     teacher_beta: float = math.inf
     """the teacher's rationality beta (inf: rational)"""
     teacher_gamma: float = 1.0
@@ -140,8 +140,7 @@ class Args:
     """segments come from the last N complete episodes (0: all)"""
 
 
-# Paper appendix, PrefPPO's hyperparameters (Args: walker-walk's); reward_epochs: the reference
-# scripts' re_update
+# Paper appendix, PrefPPO's hyperparameters; reward_epochs: the reference scripts' re_update
 METAWORLD = dict(total_timesteps=3_000_000, max_feedback=10_000, feedback_every=16_000,
                  segment_len=25, learning_rate=3e-4, num_envs=8, num_steps=250, minibatch_size=128,
                  reward_epochs=50)
@@ -369,11 +368,6 @@ def ppo_policy_loss(log_prob, old_log_prob, advantages, clip):
     return torch.max(-advantages * ratio, -advantages * clipped).mean(), ratio
 
 
-def ppo_value_loss(values, returns):
-    """Appendix Eq. (5), unclipped (reference code)."""
-    return F.mse_loss(values, returns)
-
-
 def optimize(optimizer, loss, max_grad_norm=None):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
@@ -397,7 +391,7 @@ def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, cli
     entropy = distribution.entropy().sum(-1).mean()
     log_prob = distribution.log_prob(actions).sum(-1)
     policy_loss, ratio = ppo_policy_loss(log_prob, old_logprobs, adv, clip)
-    value_loss = ppo_value_loss(critic(obs)[:, 0], returns)
+    value_loss = F.mse_loss(critic(obs)[:, 0], returns)  # Eq. (5), unclipped (reference code)
     stats = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
              "approx_kl": ((ratio - 1) - ratio.log()).mean(),
              "clipfrac": ((ratio - 1).abs() > clip).float().mean()}
@@ -438,10 +432,10 @@ def knn_distance(states, reference, k):
 
 @dataclass
 class RunningMeanStd:
-    """Chan et al.'s parallel update, over numpy rows."""
+    """Chan et al.'s parallel update, over numpy rows (the first sets the size)."""
 
-    mean: torch.Tensor
-    var: torch.Tensor
+    mean: torch.Tensor = field(default_factory=lambda: torch.zeros(1).double())
+    var: torch.Tensor = field(default_factory=lambda: torch.ones(1).double())
     count: float = 1e-4
 
     def update(self, x):
@@ -462,16 +456,15 @@ class RunningMeanStd:
 
 @dataclass
 class KnnStateEntropy(RunningMeanStd):
-    """Algorithm 2's r_int(s_t) among all pre-training states (reference code), over its running
-    std."""
+    """Algorithm 2's r_int(s_t) among all pre-training states, over its running std."""
 
     k: int = 5
-    states: torch.Tensor = None
+    states: torch.Tensor = field(default_factory=lambda: torch.zeros(0))
 
     def __call__(self, states):
-        self.states = torch.cat([self.states.to(states.device), states])
+        self.states = torch.cat([self.states, states])
         distance = knn_distance(states, self.states, self.k)[:, 0]
-        self.update(distance.cpu().numpy()[:, None])
+        self.update(distance.numpy()[:, None])
         return distance / math.sqrt(self.var[0] + 1e-8)
 
 
@@ -585,7 +578,7 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
 
 
 def restart_env(env, args, progress, i):
-    """Env i's running episode again from its reset seed and actions (MuJoCo is deterministic)."""
+    """Env i's running episode again from its reset seed and actions."""
     obs, _ = env.reset(seed=train_seed(args, progress, i))
     for action in progress.running_episodes[i][1]:
         obs = env.step(np.array(action, np.float32))[0]
@@ -883,9 +876,8 @@ if __name__ == "__main__":
     optimizer = adam([*actor.parameters(), *critic.parameters()], args.learning_rate, eps=1e-5)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
-    obs_stats = RunningMeanStd(torch.zeros(obs_dim).double(), torch.ones(obs_dim).double())
-    knn_reward = KnnStateEntropy(torch.zeros(1).double(), torch.ones(1).double(), k=args.knn_k,
-                                 states=torch.zeros(0, obs_dim, device=device))
+    obs_stats = RunningMeanStd()
+    knn_reward = KnnStateEntropy(k=args.knn_k)
     loss_fn = torch.compile(ppo_loss) if args.compile else ppo_loss
     # Feedback sessions at rollout ends, from the end of pre-training
     rollout = args.num_envs * args.num_steps
@@ -943,7 +935,7 @@ if __name__ == "__main__":
                 obs_stats.update(raw_obs)
                 obs = obs_stats.normalize(raw_obs).to(device)
                 if not progress.pretrained:  # Algorithm 2's r_int(s_t)
-                    intrinsic_buf[t] = knn_reward(torch.as_tensor(raw_obs, device=device))
+                    intrinsic_buf[t] = knn_reward(torch.from_numpy(raw_obs))
                 with torch.no_grad():
                     action, logprobs_buf[t] = actor.sample(obs, t, args.sde_freq)
                     values_buf[t] = critic(obs)[:, 0]
@@ -961,7 +953,8 @@ if __name__ == "__main__":
                 with torch.no_grad():
                     next_values_buf[t] = critic(obs_stats.normalize(reached).to(device))[:, 0]
                 raw_obs = next_obs
-            progress.global_step += rollout
+            global_step += rollout
+            progress.global_step = global_step
 
             # The reward PPO maximises: r_int (pre-training), r_hat or the true reward
             rewards = true_rewards_buf if progress.pretrained else intrinsic_buf
@@ -970,13 +963,13 @@ if __name__ == "__main__":
                     obs_actions = torch.cat([raw_obs_buf, env_actions_buf], -1)
                     rewards = reward_model(obs_actions).mean(0)[..., 0]
                 pair = torch.stack([rewards.flatten(), true_rewards_buf.flatten()])
-                writer.add_scalar("reward/rollout_correlation", torch.corrcoef(pair)[0, 1],
-                                  progress.global_step)
+                correlation = torch.corrcoef(pair)[0, 1]
+                writer.add_scalar("reward/rollout_correlation", correlation, global_step)
             advantages, returns = compute_gae(rewards, values_buf, next_values_buf, ends_buf,
                                               terminated_buf, args.gamma, args.gae_lambda)
 
             # PPO update (appendix Eqs. (4)-(5))
-            clip = clip_range(args.clip_coef, progress.global_step, args.total_timesteps)
+            clip = clip_range(args.clip_coef, global_step, args.total_timesteps)
             epochs = args.update_epochs if progress.pretrained else args.unsup_update_epochs
             batch = [x.flatten(0, 1) for x in (obs_buf, actions_buf, logprobs_buf, advantages,
                                                returns)]
@@ -985,21 +978,19 @@ if __name__ == "__main__":
             explained = 1 - (returns - values_buf).var() / returns.var().clamp(1e-8)
             losses["explained_variance"] = explained
             for name, value in losses.items():
-                writer.add_scalar(f"losses/{name}", value, progress.global_step)
+                writer.add_scalar(f"losses/{name}", value, global_step)
             check_finite(losses)
 
-            if (progress.global_step % args.eval_every < rollout
-                    or progress.global_step >= args.total_timesteps):
-                evaluation(args, progress.global_step, progress,
-                           mean_policy(actor, obs_stats, device), reward_model, eval_env, writer,
+            if global_step % args.eval_every < rollout or global_step >= args.total_timesteps:
+                policy = mean_policy(actor, obs_stats, device)
+                evaluation(args, global_step, progress, policy, reward_model, eval_env, writer,
                            device)
-            if (args.checkpoint_every and progress.global_step % args.checkpoint_every < rollout
-                    or stop or progress.global_step >= args.total_timesteps):
+            if (args.checkpoint_every and global_step % args.checkpoint_every < rollout
+                    or stop or global_step >= args.total_timesteps):
                 save_checkpoint(checkpoint_path, parts)
             if stop:
-                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step "
-                      f"{progress.global_step}; continue with --resume {args.output_dir}",
-                      flush=True)
+                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
+                      f"continue with --resume {args.output_dir}", flush=True)
                 sys.exit(128 + stop[0])
     except (FloatingPointError, OSError) as error:
         fail(f"{error} at step {progress.global_step}; the run stopped, its last checkpoint in "
