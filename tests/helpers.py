@@ -101,7 +101,7 @@ def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
 
 
 def assert_inputs_standardised_by_labelled_states(script: str, out: Path, *flags: str, obs_dim: int):
-    """A run with these flags (--reward-input-norm on, by flag or default) and 3 sessions: its final reward model
+    """A run with these flags and 3 sessions: its final reward model
     standardises observations by the mean and std of every state of the kept labelled segments (D after the last
     session), clips at 10, and leaves actions as they are."""
     import torch
