@@ -6,6 +6,7 @@ Statistical tests use a fixed seed and a tolerance of about 4 standard errors.
 """
 
 import math
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -15,6 +16,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import sim_teacher  # noqa: E402
 from sim_teacher import TEACHERS, SimTeacher, make_teacher  # noqa: E402
 
 N_COPIES = 20_000
@@ -577,3 +579,90 @@ def test_state_dict_is_plain_data_and_restores_the_same_labels():
     expected, got = teacher.label(rewards0, rewards1), restored.label(rewards0, rewards1)
     np.testing.assert_array_equal(expected[0], got[0])
     np.testing.assert_array_equal(expected[1], got[1])
+
+
+# ---------------------------------------------------------------- label files and a person's sessions
+
+
+def write_session(run_dir, number, n=4, segment_len=5, **extra):
+    rng = np.random.default_rng(number)
+    rewards0, rewards1 = rng.random((n, segment_len)), rng.random((n, segment_len))
+    y = (rewards1.sum(1) > rewards0.sum(1)).astype(float)
+    sim_teacher.save_labels(str(run_dir), number, step=100 * number, y=y, keep=np.ones(n, bool), rewards0=rewards0,
+                            rewards1=rewards1, threshold_scale=0.25 * number, **extra)
+    return y
+
+
+def test_label_files_round_trip_from_a_run_directory_its_labels_or_one_file(tmp_path):
+    ys = [write_session(tmp_path, number) for number in range(3)]
+    for path in (tmp_path, tmp_path / "labels"):
+        sessions = sim_teacher.load_labels(str(path))
+        assert [s["step"] for s in sessions] == [0, 100, 200]
+        assert [s["threshold_scale"] for s in sessions] == [0.0, 0.25, 0.5]  # a float each
+        for session, y in zip(sessions, ys):
+            np.testing.assert_array_equal(session["y"], y)
+    [one] = sim_teacher.load_labels(str(tmp_path / "labels" / "session_0001.npz"))
+    np.testing.assert_array_equal(one["y"], ys[1])
+    assert not list((tmp_path / "labels").glob("*.tmp"))  # written whole, then renamed
+
+
+@pytest.mark.parametrize("problem, message", [
+    ("empty", "no label files"), ("not_npz", "not an .npz file"), ("no_keep", "no keep in it"),
+    ("shapes", "rewards0, rewards1 must be (N, H)"), ("lengths", "sessions of different segment lengths [5, 6]"),
+])
+def test_bad_label_files_are_refused_naming_the_file(tmp_path, problem, message):
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    if problem == "not_npz":
+        (labels / "session_0000.npz").write_text("not a zip")
+    elif problem == "no_keep":
+        np.savez(labels / "session_0000.npz", y=np.zeros(2), rewards0=np.zeros((2, 5)), rewards1=np.zeros((2, 5)))
+    elif problem == "shapes":
+        np.savez(labels / "session_0000.npz", y=np.zeros(3), keep=np.ones(2, bool), rewards0=np.zeros((2, 5)),
+                 rewards1=np.zeros((2, 5)))
+    elif problem == "lengths":
+        write_session(tmp_path, 0)
+        write_session(tmp_path, 1, segment_len=6)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        sim_teacher.load_labels(str(tmp_path))
+
+
+def test_resume_sets_aside_the_sessions_after_the_checkpoint(tmp_path):
+    for number in range(4):
+        write_session(tmp_path, number)
+    sim_teacher.set_labels_aside(str(tmp_path), sessions_done=2, step=250)
+    assert [p.name for p in sorted((tmp_path / "labels").glob("session_*.npz"))] == ["session_0000.npz",
+                                                                                   "session_0001.npz"]
+    aside = tmp_path / "labels" / "before_resume_at_step_250"
+    assert sorted(p.name for p in aside.iterdir()) == ["session_0002.npz", "session_0003.npz"]
+
+
+def test_a_person_answers_a_session_through_its_files(tmp_path):
+    # the query pool: (observations, actions, rewards, reset seed) of two episodes of different lengths
+    episodes = [(np.zeros((8, 2)), np.arange(8 * 3, dtype=np.float32).reshape(8, 3), np.zeros(8), 11),
+                (np.zeros((6, 2)), -np.ones((6, 3), np.float32), np.zeros(6), 22)]
+    teacher = sim_teacher.make_teacher("human", seed=0, run_dir=str(tmp_path), episodes=episodes)
+    queries = {"step": 300, "episode0": np.array([0, 1, 1]), "start0": np.array([0, 2, 1]),
+               "episode1": np.array([1, 0, 0]), "start1": np.array([3, 4, 0])}
+    answers = {"order": [2, 0, 1], "answers": {"0": "left", "1": "skip", "2": "equal"}}
+    (tmp_path / "queries").mkdir()
+    sim_teacher.write_answers(str(tmp_path), 0, answers)  # answered already: label() returns at once
+    y, keep = teacher.label(np.zeros((3, 2)), np.zeros((3, 2)), queries)
+    np.testing.assert_array_equal(keep, [True, False, True])
+    np.testing.assert_array_equal(y[keep], [0.0, 0.5])
+    saved = sim_teacher.load_queries(sim_teacher.queries_path(str(tmp_path), 0))
+    assert int(saved["step"]) == 300
+    np.testing.assert_array_equal(saved["seed0"], [11, 22, 22])
+    np.testing.assert_array_equal(saved["start1"], [3, 4, 0])
+    assert saved["actions0"].shape == (3, 8, 3)  # each episode's actions, padded to the longest
+    np.testing.assert_array_equal(saved["actions0"][1, :6], -1)
+    np.testing.assert_array_equal(saved["actions0"][1, 6:], 0)
+    np.testing.assert_array_equal(saved["actions1"][1], episodes[0][1])
+    assert teacher.state_dict() == {"session": 1}  # the next session gets the next files
+    assert sim_teacher.read_answers(str(tmp_path), 1) == {"order": [], "answers": {}}
+
+
+def test_a_simulated_teacher_takes_the_queries_and_ignores_them():
+    rewards0, rewards1 = np.zeros((2, 3)), np.ones((2, 3))
+    y, keep = make_teacher("oracle", seed=0).label(rewards0, rewards1, {"step": 5})
+    np.testing.assert_array_equal(y, [1.0, 1.0])
