@@ -412,12 +412,12 @@ def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optim
     return stats | {"clipfrac": torch.stack(clip_fractions).mean()}
 
 
-def compute_gae(rewards, values, next_values, ends, terminated, gamma, gae_lambda):
-    """GAE over a (steps, envs) rollout; only a termination drops V(next state)."""
+def compute_gae(rewards, values, next_values, ends, gamma, gae_lambda):
+    """GAE over a (steps, envs) rollout; next_values: V of the states reached, 0 if terminal."""
     advantages = torch.zeros_like(rewards)
     last = torch.zeros_like(rewards[0])
     for t in reversed(range(len(rewards))):
-        delta = rewards[t] + gamma * next_values[t] * (1.0 - terminated[t]) - values[t]
+        delta = rewards[t] + gamma * next_values[t] - values[t]
         last = delta + gamma * gae_lambda * (1.0 - ends[t]) * last
         advantages[t] = last
     return advantages, advantages + values
@@ -905,8 +905,8 @@ if __name__ == "__main__":
     shape = (args.num_steps, args.num_envs)
     raw_obs_buf, obs_buf = torch.zeros(2, *shape, obs_dim, device=device)
     actions_buf, env_actions_buf = torch.zeros(2, *shape, action_dim, device=device)
-    logprobs_buf, values_buf, next_values_buf, intrinsic_buf, true_rewards_buf, terminated_buf, \
-        ends_buf = torch.zeros(7, *shape, device=device)
+    logprobs_buf, values_buf, next_values_buf, rewards_buf, ends_buf = torch.zeros(
+        5, *shape, device=device)
     stop = []  # SIGTERM or SIGINT: checkpoint after this rollout, then exit
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
     signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
@@ -934,8 +934,6 @@ if __name__ == "__main__":
             for t in range(args.num_steps):
                 obs_stats.update(raw_obs)
                 obs = obs_stats.normalize(raw_obs).to(device)
-                if not progress.pretrained:  # Algorithm 2's r_int(s_t)
-                    intrinsic_buf[t] = knn_reward(torch.from_numpy(raw_obs))
                 with torch.no_grad():
                     action, logprobs_buf[t] = actor.sample(obs, t, args.sde_freq)
                     values_buf[t] = critic(obs)[:, 0]
@@ -947,26 +945,28 @@ if __name__ == "__main__":
                 obs_buf[t] = obs
                 actions_buf[t] = action
                 env_actions_buf[t] = env_action
-                true_rewards_buf[t] = torch.as_tensor(true_reward)
-                terminated_buf[t] = torch.as_tensor(terminated)
+                rewards_buf[t] = torch.as_tensor(true_reward)
+                if not progress.pretrained:  # Algorithm 2's r_int(s_t)
+                    rewards_buf[t] = knn_reward(torch.from_numpy(raw_obs))
                 ends_buf[t] = torch.as_tensor(ends)
-                with torch.no_grad():
-                    next_values_buf[t] = critic(obs_stats.normalize(reached).to(device))[:, 0]
+                with torch.no_grad():  # time limits bootstrapped
+                    next_values = critic(obs_stats.normalize(reached).to(device))[:, 0]
+                next_values_buf[t] = next_values * torch.as_tensor(~terminated, device=device)
                 raw_obs = next_obs
             global_step += rollout
             progress.global_step = global_step
 
             # The reward PPO maximises: r_int (pre-training), r_hat or the true reward
-            rewards = true_rewards_buf if progress.pretrained else intrinsic_buf
+            rewards = rewards_buf
             if progress.pretrained and not args.ground_truth_reward:
                 with torch.no_grad():
                     obs_actions = torch.cat([raw_obs_buf, env_actions_buf], -1)
                     rewards = reward_model(obs_actions).mean(0)[..., 0]
-                pair = torch.stack([rewards.flatten(), true_rewards_buf.flatten()])
+                pair = torch.stack([rewards.flatten(), rewards_buf.flatten()])
                 correlation = torch.corrcoef(pair)[0, 1]
                 writer.add_scalar("reward/rollout_correlation", correlation, global_step)
             advantages, returns = compute_gae(rewards, values_buf, next_values_buf, ends_buf,
-                                              terminated_buf, args.gamma, args.gae_lambda)
+                                              args.gamma, args.gae_lambda)
 
             # PPO update (appendix Eqs. (4)-(5))
             clip = clip_range(args.clip_coef, global_step, args.total_timesteps)

@@ -50,14 +50,13 @@ def test_gae_matches_a_hand_computed_rollout():
     rewards = torch.tensor([[1.0], [2.0], [3.0]])
     values = torch.tensor([[0.5], [1.0], [1.5]])
     next_values = torch.tensor([[1.0], [1.5], [2.0]])
-    no_end = torch.zeros(3, 1)
     d2 = 3 + 0.9 * 2.0 - 1.5  # 3.3
     d1 = 2 + 0.9 * 1.5 - 1.0  # 2.35
     d0 = 1 + 0.9 * 1.0 - 0.5  # 1.4
     a2 = d2
     a1 = d1 + gamma * lam * a2
     a0 = d0 + gamma * lam * a1
-    advantages, returns = prefppo.compute_gae(rewards, values, next_values, no_end, no_end, gamma, lam)
+    advantages, returns = prefppo.compute_gae(rewards, values, next_values, torch.zeros(3, 1), gamma, lam)
     torch.testing.assert_close(advantages[:, 0], torch.tensor([a0, a1, a2]))
     torch.testing.assert_close(returns, advantages + values)
 
@@ -67,11 +66,13 @@ def test_gae_stops_at_an_episode_end_and_bootstraps_only_a_time_limit(terminated
     gamma, lam = 0.9, 0.8
     rewards = torch.tensor([[1.0], [2.0], [3.0]])
     values = torch.tensor([[0.5], [1.0], [1.5]])
-    next_values = torch.tensor([[1.0], [7.0], [2.0]])  # step 1 ends the episode: 7 is V of its last state
+    # step 1 ends the episode: the main loop's next value is V of its last state (7) at a time limit, 0 at a
+    # termination
+    next_values = torch.tensor([[1.0], [0.0 if terminated else 7.0], [2.0]])
     ends = torch.tensor([[0.0], [1.0], [0.0]])
-    advantages, _ = prefppo.compute_gae(rewards, values, next_values, ends, ends * terminated, gamma, lam)
+    advantages, _ = prefppo.compute_gae(rewards, values, next_values, ends, gamma, lam)
     a2 = 3 + 0.9 * 2.0 - 1.5
-    a1 = 2 + (0.0 if terminated else 0.9 * 7.0) - 1.0  # a time limit: gamma V(last state); a termination: 0
+    a1 = 2 + (0.0 if terminated else 0.9 * 7.0) - 1.0
     a0 = (1 + 0.9 * 1.0 - 0.5) + gamma * lam * a1  # step 0 does not see step 2 (the next episode)
     torch.testing.assert_close(advantages[:, 0], torch.tensor([a0, a1, a2]))
 

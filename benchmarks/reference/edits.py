@@ -30,7 +30,7 @@ EDITS = {
     },
     # The reference PrefPPO's SB3 ends an episode at its time limit as at a termination (differences.md 16)
     "no-bootstrap-time-limits": {
-        "prefppo.py": [("next_values[t] * (1.0 - terminated[t])", "next_values[t] * (1.0 - ends[t])")],
+        "prefppo.py": [("torch.as_tensor(~terminated, device=device)", "torch.as_tensor(~ends, device=device)")],
     },
     # The reference PrefPPO's query pool and r_hat see VecNormalize's observations of their step (defect 7,
     # differences.md 17); no statistics of D
