@@ -294,10 +294,7 @@ class Actor(nn.Module):
     def distribution(self, obs):
         latent = self.policy[:-1](obs)
         mean = self.policy[-1](latent)
-        if self.use_sde:
-            std = sde_std(latent.detach(), self.log_std)
-        else:
-            std = self.log_std.exp().expand_as(mean)
+        std = sde_std(latent.detach(), self.log_std) if self.use_sde else self.log_std.exp()
         return torch.distributions.Normal(mean, std, validate_args=False), latent
 
     def sample(self, obs, step, sde_freq):
@@ -308,8 +305,7 @@ class Actor(nn.Module):
             if step % sde_freq == 0:
                 noise = torch.randn(len(obs), *self.log_std.shape, device=obs.device)
                 self.exploration = self.log_std.exp() * noise
-            noise = torch.bmm(latent.detach().unsqueeze(1), self.exploration).squeeze(1)
-            action = distribution.loc + noise
+            action = distribution.loc + (latent.detach().unsqueeze(1) @ self.exploration)[:, 0]
         return action, distribution.log_prob(action).sum(-1)
 
 
@@ -439,13 +435,12 @@ class RunningMeanStd:
     count: float = 1e-4
 
     def update(self, x):
-        batch_mean = torch.from_numpy(x.mean(0))
-        batch_var = torch.from_numpy(x.var(0))
-        total = self.count + len(x)
-        delta = batch_mean - self.mean
-        m2 = self.var * self.count + batch_var * len(x)
-        m2 += delta**2 * self.count * len(x) / total
-        self.mean = self.mean + delta * len(x) / total
+        n = len(x)
+        total = self.count + n
+        delta = torch.from_numpy(x.mean(0)) - self.mean
+        m2 = self.var * self.count + torch.from_numpy(x.var(0)) * n
+        m2 += delta**2 * self.count * n / total
+        self.mean = self.mean + delta * n / total
         self.var = m2 / total
         self.count = total
 
@@ -858,18 +853,18 @@ if __name__ == "__main__":
     if args.track:
         import wandb
 
-        wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=asdict(args),
+        wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=vars(args),
                    name=os.path.basename(args.output_dir), save_code=True)
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(args.output_dir)
-    table = "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items())
+    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
     writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
 
-    # Seeding: numpy streams (query sampler, teacher), torch, every reset
+    # Seeding: numpy streams, torch, every reset
     rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
-    torch.set_flush_denormal(True)  # MuJoCo's tiny float32 velocities: slow on a CPU
+    torch.set_flush_denormal(True)
     envs = [env] + [make_env(args.env_id)[0] for _ in range(args.num_envs - 1)]
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
@@ -896,6 +891,7 @@ if __name__ == "__main__":
              "rng": rng, "episodes": episodes}
     if args.resume:
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
+        print(f"resuming from the checkpoint at step {progress.global_step}")
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {args.output_dir!r} has already finished")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
