@@ -396,10 +396,10 @@ def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, cli
 
 def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optimizer, epochs, clip,
                args, loss_fn=ppo_loss):
+    rollout = (obs, actions, logprobs, advantages, returns)
     clip_fractions = []
     for _ in range(epochs):
         order = torch.randperm(len(obs), device=obs.device)
-        rollout = (obs, actions, logprobs, advantages, returns)
         for minibatch in zip(*[x[order].split(args.minibatch_size) for x in rollout]):
             loss, stats = loss_fn(actor, critic, *minibatch, clip, args)
             optimize(optimizer, loss, args.max_grad_norm)
@@ -710,9 +710,9 @@ def check_args(args, episode_len):
          f"> --unsup-steps ({args.unsup_steps}) and >= a rollout ({rollout})"),
     ]
     for name, ok, rule in rules:
-        value = getattr(args, name)
-        if not ok(value):
-            raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {value}")
+        if not ok(getattr(args, name)):
+            flag = name.replace("_", "-")
+            raise ValueError(f"--{flag} must be {rule}, got {getattr(args, name)}")
 
 
 def check_video(eval_env):
