@@ -641,7 +641,7 @@ def fail(message, code=2):
 
 RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
                      "wandb_project_name", "capture_video", "compile")
-RANGES = [  # (flags, test, the rule): the teacher's fields are make_teacher's to check
+RANGES = [  # (flags, test, rule); the teacher checks its own
     (("seed", "unsup_steps", "checkpoint_every", "ent_coef", "vf_coef", "query_recent_episodes"),
      lambda v: v >= 0, ">= 0"),
     (("max_feedback", "feedback_per_session", "feedback_every", "hidden_dim", "num_layers",
