@@ -484,7 +484,9 @@ def train_reward(reward_model, optimizer, preferences, args):
     y = preferences["y"]
     for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
-        correct = counted = loss_sum = torch.zeros((), device=y.device)
+        correct = torch.zeros((), device=y.device)
+        counted = torch.zeros((), device=y.device)
+        loss_sum = torch.zeros((), device=y.device)
         for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
@@ -581,7 +583,8 @@ def evaluate(policy, reward_model, env, seeds, device):
     learned = []
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
-        done = success = False
+        done = False
+        success = False
         returns.append(0.0)
         while not done:
             with torch.no_grad():
@@ -614,9 +617,9 @@ RANGES = [  # (flags, test, rule); the teacher checks its own
     (("seed", "seed_steps", "unsup_steps", "checkpoint_every", "buffer_size",
       "query_recent_episodes", "critic_reset_updates"), lambda v: v >= 0, ">= 0"),
     (("max_feedback", "feedback_per_session", "feedback_every", "hidden_dim", "num_layers",
-      "batch_size", "eval_every",
-      "eval_episodes", "knn_k", "reward_ensemble_size", "reward_batch_size", "reward_epochs",
-      "candidate_multiplier", "target_update_every"), lambda v: v >= 1, ">= 1"),
+      "batch_size", "eval_every", "eval_episodes", "knn_k", "reward_ensemble_size",
+      "reward_batch_size", "reward_epochs", "candidate_multiplier", "target_update_every"),
+     lambda v: v >= 1, ">= 1"),
     (("learning_rate", "alpha_lr", "reward_lr", "init_temperature"), lambda v: v > 0, "> 0"),
     (("gamma", "tau"), lambda v: 0 < v <= 1, "in (0, 1]"),
     (("label_smoothing",), lambda v: 0 <= v < 1, "in [0, 1)"),
@@ -746,14 +749,14 @@ def save_checkpoint(path, parts):
     save_file(path, data.getvalue())
 
 
-def evaluation(args, step, progress, actor, reward_model, eval_env, writer, device):
+def evaluation(args, step, progress, policy, reward_model, eval_env, writer, device):
     """A row of eval.csv."""
     if args.capture_video:
         eval_env.name_prefix = f"step_{step}"
     first = len(progress.eval_rows) * args.eval_episodes
     seeds = [episode_seed(args.seed, EVAL_STREAM, first + j) for j in range(args.eval_episodes)]
     learned = reward_model if progress.pretrained and not args.ground_truth_reward else None
-    result = evaluate(mean_policy(actor, device), learned, eval_env, seeds, device)
+    result = evaluate(policy, learned, eval_env, seeds, device)
     if args.capture_video and eval_env.recording:
         eval_env.stop_recording()
     wall_time = round(time.time() - progress.start_time, 1)
@@ -957,13 +960,13 @@ if __name__ == "__main__":
 
             progress.global_step = global_step
             if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
-                evaluation(args, global_step, progress, actor, reward_model, eval_env, writer,
-                           device)
+                evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
+                           eval_env, writer, device)
             if (args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop
                     or global_step == args.total_timesteps):
                 check_finite(losses)
                 save_checkpoint(checkpoint_path, parts)
-            if stop:
+            if stop and global_step < args.total_timesteps:
                 print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                       f"continue with --resume {args.output_dir}", flush=True)
                 sys.exit(128 + stop[0])

@@ -490,7 +490,9 @@ def train_reward(reward_model, optimizer, preferences, args):
     y = preferences["y"]
     for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
-        correct = counted = loss_sum = torch.zeros((), device=y.device)
+        correct = torch.zeros((), device=y.device)
+        counted = torch.zeros((), device=y.device)
+        loss_sum = torch.zeros((), device=y.device)
         for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
@@ -612,7 +614,8 @@ def evaluate(policy, reward_model, env, seeds, device):
     learned = []
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
-        done = success = False
+        done = False
+        success = False
         returns.append(0.0)
         while not done:
             with torch.no_grad():
@@ -984,7 +987,7 @@ if __name__ == "__main__":
             if (args.checkpoint_every and global_step % args.checkpoint_every < rollout
                     or stop or global_step >= args.total_timesteps):
                 save_checkpoint(checkpoint_path, parts)
-            if stop:
+            if stop and global_step < args.total_timesteps:
                 print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                       f"continue with --resume {args.output_dir}", flush=True)
                 sys.exit(128 + stop[0])

@@ -355,8 +355,7 @@ def load_final_model(run: Run) -> tuple:
     reward_model.load_state_dict(raw_inputs | saved["reward_model"])
     obs_stats = None
     if "obs_mean" in saved:  # prefppo: the policy's observation normaliser (the reward model's is in its buffers)
-        obs_stats = module.RunningMeanStd(obs_dim)
-        obs_stats.mean, obs_stats.var = saved["obs_mean"].numpy(), saved["obs_var"].numpy()
+        obs_stats = module.RunningMeanStd(saved["obs_mean"], saved["obs_var"])
     return module, env, actor, reward_model, obs_stats
 
 
