@@ -157,7 +157,7 @@ def test_the_reference_results_are_read_back_in_our_columns(tmp_path):
     reference_run.write_eval(tmp_path, rows)
     with open(tmp_path / "eval.csv") as f:
         read = list(csv.DictReader(f))
-    assert list(read[0]) == list(pebble.EVAL_COLUMNS) and float(read[1]["episode_return"]) == 300.25
+    assert list(read[0]) == list(reference_run.EVAL_COLUMNS) and float(read[1]["episode_return"]) == 300.25
 
 
 def test_the_reference_networks_load_into_our_classes_and_are_evaluated_as_ours(tmp_path):
@@ -260,7 +260,7 @@ def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=
     rows = [{"step": steps[i], "episode_return": value, "wall_time": 60.0 * (i + 1),
              "reward_correlation": 0.5 if implementation == "ours" else "nan"} for i, value in enumerate(curve)]
     with open(path / "eval.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, pebble.EVAL_COLUMNS, restval="0")
+        writer = csv.DictWriter(f, reference_run.EVAL_COLUMNS, restval="0")
         writer.writeheader()
         writer.writerows(rows)
     (path / "final_model.pt").write_bytes(b"")
