@@ -20,7 +20,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 import tyro
-from torch.nn.utils.rnn import pad_sequence
 
 from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
 from sim_teacher import (TEACHERS, load_labels, make_teacher, save_file, save_labels,
