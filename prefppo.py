@@ -22,7 +22,7 @@ import torch.nn.functional as F
 import tyro
 
 from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
-from sim_teacher import (TEACHERS, load_labels, make_teacher, save_file, save_labels,
+from sim_teacher import (TEACHERS, load_pairs, make_teacher, save_file, save_labels,
                          set_labels_aside)
 
 
@@ -163,27 +163,27 @@ class DMCEnv(gym.Env):
         self.dmc = suite.load(domain, task)
         self.render_mode = render_mode
         obs_dim = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values())
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,))
         spec = self.dmc.action_spec()
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32),
                                            spec.maximum.astype(np.float32))
 
     def reset(self, *, seed=None, options=None):
         if seed is not None:
             self.dmc.task.random.seed(seed)
-        return np.concatenate([np.ravel(v) for v in self.dmc.reset().observation.values()]), {}
+        return self.flat(self.dmc.reset()), {}
 
     def step(self, action):
-        step = self.dmc.step(action)
-        obs = np.concatenate([np.ravel(v) for v in step.observation.values()])
-        terminated = step.last() and step.discount == 0
-        return obs, step.reward, terminated, step.last() and not terminated, {}
+        time_step = self.dmc.step(action)
+        terminated = time_step.last() and time_step.discount == 0
+        truncated = time_step.last() and not terminated
+        return self.flat(time_step), time_step.reward, terminated, truncated, {}
+
+    def flat(self, time_step):
+        return np.concatenate([np.ravel(v) for v in time_step.observation.values()])
 
     def render(self):
         return self.dmc.physics.render(height=240, width=320, camera_id=0)
-
-    def close(self):
-        self.dmc.physics.free()
 
 
 class MetaWorldSeeding(gym.Wrapper):
@@ -475,38 +475,29 @@ def preference_loss(segment_returns, y, label_smoothing=0.0):
     return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
-def preference_accuracy(segment_returns, y):
-    """(correct, counted) over the strict labels."""
-    strict = y != 0.5
-    correct = (segment_returns[:, 1] > segment_returns[:, 0]) == (y > 0.5)
-    return (correct & strict).sum(), strict.sum()
-
-
 def train_reward(reward_model, optimizer, preferences, args):
-    """Algorithm 3, reward learning (reference: stops at 97% accuracy)."""
+    """Algorithm 3, reward learning (reference: stops at 97% accuracy on the strict labels)."""
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
     y = preferences["y"]
     for _ in range(args.reward_epochs):
         orders = [torch.randperm(len(y), device=y.device) for _ in reward_model.members]
         correct = torch.zeros((), device=y.device)
-        counted = torch.zeros((), device=y.device)
-        loss_sum = torch.zeros((), device=y.device)
+        losses = []
         for start in range(0, len(y), args.reward_batch_size):
             loss = 0.0
             for member, order in zip(reward_model.members, orders):
                 idx = order[start : start + args.reward_batch_size]
                 returns = torch.cat([member(inputs0[idx]).sum(1), member(inputs1[idx]).sum(1)], -1)
                 loss = loss + preference_loss(returns, y[idx], args.label_smoothing)
-                member_correct, member_counted = preference_accuracy(returns.detach(), y[idx])
-                correct = correct + member_correct
-                counted = counted + member_counted
+                right = (returns[:, 1] > returns[:, 0]) == (y[idx] > 0.5)
+                correct = correct + (right & (y[idx] != 0.5)).sum()
             optimize(optimizer, loss)
-            loss_sum = loss_sum + loss.detach() / len(reward_model.members)
-        accuracy = correct.item() / counted.item() if counted else float("nan")
+            losses.append(loss.detach() / len(reward_model.members))
+        accuracy = correct.item() / ((y != 0.5).sum().item() * len(reward_model.members) or 1)
         if accuracy > 0.97:
             break
-    loss = (loss_sum / math.ceil(len(y) / args.reward_batch_size)).item()
+    loss = torch.stack(losses).mean().item()
     if not math.isfinite(loss):
         raise FloatingPointError(f"non-finite reward-model loss ({loss})")
     return loss, accuracy
@@ -536,9 +527,9 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
 
 def add_labels(preferences, inputs0, inputs1, y, keep):
     """D grows by the kept labels and both segments' (obs, action) inputs."""
-    new = {"inputs0": inputs0[keep], "inputs1": inputs1[keep], "y": torch.tensor(y[keep])}
-    for key in preferences:
-        preferences[key] = torch.cat([preferences[key], new[key].float().to(inputs0.device)])
+    for key, value in zip(preferences, (inputs0, inputs1, y)):
+        new = torch.as_tensor(value[keep]).float().to(preferences[key].device)
+        preferences[key] = torch.cat([preferences[key], new])
 
 
 def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
@@ -567,9 +558,8 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
     loss, accuracy = train_reward(reward_model, reward_optimizer, preferences, args)
     writer.add_scalar("reward/loss", loss, step)
     writer.add_scalar("reward/accuracy", accuracy, step)
-    print(f"step {step}: feedback session {progress.sessions_done}: {size} queries "
-          f"({(~keep).sum()} skipped), reward model trained on {len(preferences['y'])} labels, "
-          f"accuracy {accuracy:.3f}")
+    print(f"step {step}: feedback session {progress.sessions_done}: reward model trained on "
+          f"{len(preferences['y'])} labels, accuracy {accuracy:.3f}")
     return len(preferences["y"])
 
 
@@ -614,8 +604,8 @@ def evaluate(policy, reward_model, env, seeds, device):
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
         done = False
-        success = False
         returns.append(0.0)
+        successes.append(False)
         while not done:
             with torch.no_grad():
                 action = policy(obs)
@@ -625,14 +615,35 @@ def evaluate(policy, reward_model, env, seeds, device):
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
             done = terminated or truncated
             returns[-1] += reward
-            success = success or info.get("success")
+            successes[-1] = successes[-1] or bool(info.get("success"))
             true_rewards.append(reward)
-        successes.append(bool(success))
     correlation = math.nan
-    if learned and np.std(learned) > 0 and np.std(true_rewards) > 0:
+    if learned and min(np.std(learned), np.std(true_rewards)) > 0:
         correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
+
+
+def evaluation(args, step, progress, policy, reward_model, env, writer, device):
+    """A row of eval.csv."""
+    if args.capture_video:
+        env.name_prefix = f"step_{step}"
+    first = len(progress.eval_rows) * args.eval_episodes
+    seeds = [episode_seed(args.seed, EVAL_STREAM, first + j) for j in range(args.eval_episodes)]
+    learned = reward_model if progress.pretrained and not args.ground_truth_reward else None
+    result = evaluate(policy, learned, env, seeds, device)
+    if args.capture_video and env.recording:
+        env.stop_recording()
+    wall_time = round(time.time() - progress.start_time, 1)
+    progress.eval_rows.append({"step": step, **result, "feedback": progress.feedback_used,
+                               "wall_time": wall_time})
+    lines = [progress.eval_rows[0]] + [map(str, row.values()) for row in progress.eval_rows]
+    save_file(os.path.join(args.output_dir, "eval.csv"), "".join(
+        ",".join(line) + "\n" for line in lines).encode())
+    for name, value in result.items():
+        writer.add_scalar(f"eval/{name}", value, step)
+    writer.add_scalar("charts/SPS", step / wall_time, step)
+    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS")
 
 
 # Plumbing: command line, files, checkpoints, logging
@@ -644,16 +655,16 @@ def fail(message, code=2):
 RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
                      "wandb_project_name", "capture_video", "compile")
 RANGES = [  # (flags, test, rule); the teacher checks its own
-    (("seed", "unsup_steps", "checkpoint_every", "ent_coef", "vf_coef", "query_recent_episodes"),
+    ("seed unsup_steps checkpoint_every ent_coef vf_coef query_recent_episodes",
      lambda v: v >= 0, ">= 0"),
-    (("max_feedback", "feedback_per_session", "feedback_every", "hidden_dim", "num_layers",
-      "num_envs", "num_steps", "update_epochs", "unsup_update_epochs", "minibatch_size",
-      "sde_freq", "eval_every", "eval_episodes", "knn_k", "reward_ensemble_size",
-      "reward_batch_size", "reward_epochs", "candidate_multiplier"), lambda v: v >= 1, ">= 1"),
-    (("learning_rate", "reward_lr", "clip_coef", "max_grad_norm"), lambda v: v > 0, "> 0"),
-    (("gamma",), lambda v: 0 < v <= 1, "in (0, 1]"),
-    (("gae_lambda",), lambda v: 0 <= v <= 1, "in [0, 1]"),
-    (("label_smoothing",), lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("max_feedback feedback_per_session feedback_every hidden_dim num_layers num_envs "
+     "num_steps update_epochs unsup_update_epochs minibatch_size sde_freq eval_every "
+     "eval_episodes knn_k reward_ensemble_size reward_batch_size reward_epochs "
+     "candidate_multiplier", lambda v: v >= 1, ">= 1"),
+    ("learning_rate reward_lr clip_coef max_grad_norm", lambda v: v > 0, "> 0"),
+    ("gamma", lambda v: 0 < v <= 1, "in (0, 1]"),
+    ("gae_lambda", lambda v: 0 <= v <= 1, "in [0, 1]"),
+    ("label_smoothing", lambda v: 0 <= v < 1, "in [0, 1)"),
 ]
 
 def task_defaults(env_id, teacher):
@@ -684,14 +695,14 @@ def parse_args():
         with contextlib.redirect_stderr(captured):
             args = tyro.cli(Args, default=default)
     except SystemExit as exit_:
-        if exit_.code:  # the box's text up to its first rule
-            lines = captured.getvalue().splitlines()[1:]
-            text = "\n".join(line.strip("│╭╰╮╯ ") for line in lines)
-            fail(" ".join(text.split("\n─")[0].split()))
+        if exit_.code:  # tyro's box, up to its first rule, in one line
+            box = captured.getvalue().split("\n")[1:]
+            text = " ".join(line.strip("│╭╰╮╯ ") for line in box)
+            fail(" ".join(text.split("─")[0].split()))
         raise
     if given.resume:
-        changed = [f.name for f in fields(Args) if f.name not in RESUME_MAY_CHANGE
-                   and getattr(args, f.name) != getattr(default, f.name)]
+        changed = [k for k, v in vars(args).items()
+                   if v != getattr(default, k) and k not in RESUME_MAY_CHANGE]
         if changed:
             fail(f"--{changed[0].replace('_', '-')} cannot change when resuming")
         args.output_dir = given.resume
@@ -704,7 +715,7 @@ def parse_args():
 def check_args(args, episode_len):
     """ValueError naming the first flag out of its range."""
     rollout = args.num_envs * args.num_steps
-    rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names] + [
+    rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names.split()] + [
         ("feedback_per_session", lambda v: v <= args.max_feedback, "<= --max-feedback"),
         ("segment_len", lambda v: 1 <= v <= episode_len, f"in [1, {episode_len}] (T)"),
         ("minibatch_size", lambda v: v <= rollout, f"<= --num-envs x --num-steps ({rollout})"),
@@ -777,28 +788,6 @@ def save_checkpoint(path, parts):
     save_file(path, data.getvalue())
 
 
-def evaluation(args, step, progress, policy, reward_model, eval_env, writer, device):
-    """A row of eval.csv."""
-    if args.capture_video:
-        eval_env.name_prefix = f"step_{step}"
-    first = len(progress.eval_rows) * args.eval_episodes
-    seeds = [episode_seed(args.seed, EVAL_STREAM, first + j) for j in range(args.eval_episodes)]
-    learned = reward_model if progress.pretrained and not args.ground_truth_reward else None
-    result = evaluate(policy, learned, eval_env, seeds, device)
-    if args.capture_video and eval_env.recording:
-        eval_env.stop_recording()
-    wall_time = round(time.time() - progress.start_time, 1)
-    progress.eval_rows.append({"step": step, **result, "feedback": progress.feedback_used,
-                               "wall_time": wall_time})
-    lines = [progress.eval_rows[0]] + [map(str, row.values()) for row in progress.eval_rows]
-    save_file(os.path.join(args.output_dir, "eval.csv"), "".join(
-        ",".join(line) + "\n" for line in lines).encode())
-    for name, value in result.items():
-        writer.add_scalar(f"eval/{name}", value, step)
-    writer.add_scalar("charts/SPS", step / wall_time, step)
-    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS")
-
-
 @dataclass
 class Progress:
     """What the main loop carries besides networks, optimizers and buffers."""
@@ -829,16 +818,12 @@ if __name__ == "__main__":
         teacher_fields = {k[8:]: v for k, v in vars(args).items() if k.startswith("teacher_")}
         teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, episodes,
                                **teacher_fields)
-        imported = load_labels(args.labels_from) if args.labels_from and not args.resume else []
         obs_dim = env.observation_space.shape[0]
         action_dim = env.action_space.shape[0]
         empty = torch.zeros(0, args.segment_len, obs_dim + action_dim, device=device)
         preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device)}
-        for s in imported:  # --labels-from
-            inputs = [np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1) for i in (0, 1)]
-            if inputs[0].shape[1:] != empty.shape[1:]:
-                raise ValueError(f"--labels-from: segments do not fit this run's {empty.shape[1:]}")
-            add_labels(preferences, *map(torch.tensor, inputs), s["y"], s["keep"])
+        if args.labels_from and not args.resume:
+            add_labels(preferences, *load_pairs(args.labels_from, empty.shape[1:]))
         checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
         if args.resume and not os.path.isfile(checkpoint_path):
             raise ValueError(f"--resume {args.output_dir!r}: no checkpoint.pt there")
@@ -893,9 +878,9 @@ if __name__ == "__main__":
              "rng": rng, "episodes": episodes}
     if args.resume:
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
-        print(f"resuming from the checkpoint at step {progress.global_step}")
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {args.output_dir!r} has already finished")
+        print(f"resuming from the checkpoint at step {progress.global_step}")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
         progress.start_time += time.time() - os.path.getmtime(checkpoint_path)
     raw_obs = np.stack([restart_env(env, args, progress, i) for i, env in enumerate(envs)])
@@ -906,8 +891,8 @@ if __name__ == "__main__":
     logprobs_buf, values_buf, next_values_buf, rewards_buf, ends_buf = torch.zeros(
         5, *shape, device=device)
     stop = []  # SIGTERM or SIGINT: checkpoint after this rollout, then exit
-    signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
-    signal.signal(signal.SIGINT, lambda signum, frame: stop.append(signum))
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda signum, frame: stop.append(signum))
 
     # Main loop: Algorithm 3 with PPO, after Algorithm 2 (unsupervised pre-training)
     try:

@@ -232,6 +232,21 @@ def load_labels(path: str) -> list[dict]:
     return sessions
 
 
+def load_pairs(path: str, shape: tuple) -> tuple[np.ndarray, ...]:
+    """--labels-from: every session of `path` as (inputs0, inputs1, y, keep), where inputs are the segments'
+    observations and actions side by side, (N, H, obs + action); ValueError when they do not fit `shape`."""
+    sessions = load_labels(path)
+    try:
+        inputs = [np.concatenate([np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1) for s in sessions])
+                  for i in (0, 1)]
+    except (KeyError, ValueError) as error:
+        raise ValueError(f"{path!r}: its label files hold no segments' obs and actions ({error})") from None
+    if inputs[0].shape[1:] != tuple(shape):
+        raise ValueError(f"--labels-from: segments of shape {inputs[0].shape[1:]} do not fit this run's "
+                         f"{tuple(shape)} (segment length, observation + action size)")
+    return (*inputs, *(np.concatenate([s[key] for s in sessions]) for key in ("y", "keep")))
+
+
 def set_labels_aside(run_dir: str, sessions_done: int, step: int) -> None:
     """--resume from step N: the label files of later sessions go to labels/before_resume_at_step_N
     (the run asks those sessions again)."""

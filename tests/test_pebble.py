@@ -5,6 +5,7 @@ and bad input that must end with one line and a non-zero exit before any trainin
 import importlib
 import json
 import math
+import types
 import typing
 import warnings
 
@@ -299,9 +300,18 @@ def test_label_smoothing_softens_the_target_as_in_the_appendix():
 
 
 def test_accuracy_does_not_count_equal_labels():
-    returns = torch.tensor([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])  # always predicts "first"
-    correct, counted = pebble.preference_accuracy(returns, torch.tensor([0.5, 0.5, 0.0, 1.0]))
-    assert (int(correct), int(counted)) == (1, 2)  # the old code would say 3 of 4
+    torch.manual_seed(0)
+    model = pebble.RewardEnsemble(1, 1, 1)
+    inputs0, inputs1 = torch.randn(2, 4, 3, 2).unbind()
+    with torch.no_grad():
+        first = model(inputs1).sum(2)[0, :, 0] < model(inputs0).sum(2)[0, :, 0]  # predicted "first"
+    y = torch.tensor([0.5, 0.5, 0.0, 0.0])
+    y[2:] = torch.where(first[2:], 0.0, 1.0)  # pair 2 as predicted
+    y[3] = 1.0 - y[3]  # pair 3 against it
+    args = types.SimpleNamespace(reward_epochs=1, reward_batch_size=4, label_smoothing=0.0)
+    preferences = {"inputs0": inputs0, "inputs1": inputs1, "y": y}
+    _, accuracy = pebble.train_reward(model, torch.optim.SGD(model.parameters(), lr=0.0), preferences, args)
+    assert accuracy == 0.5  # 1 of the 2 strict labels; counting the equal ones would say 1 or 3 of 4
 
 
 @pytest.mark.parametrize("script", ["pebble", "prefppo"])  # the same class in both

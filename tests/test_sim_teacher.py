@@ -627,6 +627,27 @@ def test_bad_label_files_are_refused_naming_the_file(tmp_path, problem, message)
         sim_teacher.load_labels(str(tmp_path))
 
 
+def test_load_pairs_joins_each_segments_observations_and_actions_in_session_order(tmp_path):
+    segments = []
+    for number in range(2):
+        rng = np.random.default_rng(number)
+        segment = {f"{key}{i}": rng.random((4, 5, dim)) for key, dim in (("obs", 3), ("actions", 2)) for i in (0, 1)}
+        write_session(tmp_path, number, **segment)
+        segments.append(segment)
+    inputs0, inputs1, y, keep = sim_teacher.load_pairs(str(tmp_path), (5, 5))
+    assert inputs0.shape == inputs1.shape == (8, 5, 5) and y.shape == keep.shape == (8,)
+    np.testing.assert_array_equal(inputs1[4:, :, :3], segments[1]["obs1"])  # session 1 after session 0
+    np.testing.assert_array_equal(inputs0[:4, :, 3:], segments[0]["actions0"])
+    with pytest.raises(ValueError, match=re.escape("do not fit this run's (5, 6)")):
+        sim_teacher.load_pairs(str(tmp_path), (5, 6))
+
+
+def test_load_pairs_refuses_label_files_without_segments(tmp_path):
+    write_session(tmp_path, 0)  # rewards and labels only
+    with pytest.raises(ValueError, match="hold no segments' obs and actions"):
+        sim_teacher.load_pairs(str(tmp_path), (5, 5))
+
+
 def test_resume_sets_aside_the_sessions_after_the_checkpoint(tmp_path):
     for number in range(4):
         write_session(tmp_path, number)
