@@ -1,4 +1,4 @@
-"""Long runs survive crashes and kills, in pebble.py and prefppo.py: checkpoints, --resume after SIGKILL
+"""Long runs survive crashes and kills, in pebble.py, rime.py and prefppo.py: checkpoints, --resume after SIGKILL
 and SIGTERM (compared with the uninterrupted run of the same seed), atomic checkpoint writes, --labels-from,
 non-finite stops and output-directory failures."""
 
@@ -32,6 +32,8 @@ RUNS = {
                    "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"],
 }
 SCRIPTS = list(RUNS)
+RUNS["rime.py"] = RUNS["pebble.py"]  # pebble.py's loop and plumbing with RIME's parts: resumes, labels-from
+WITH_RIME = SCRIPTS + ["rime.py"]
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +60,7 @@ def assert_same_run(resumed, reference):
         np.testing.assert_allclose(a["obs0"], b["obs0"], rtol=1e-6)
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("script", WITH_RIME)
 def test_sigkill_then_resume_equals_the_uninterrupted_run(script, tmp_path, uninterrupted):
     out = tmp_path / "run"
     process = start_script(script, out, *RUNS[script])
@@ -77,7 +79,7 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(script, tmp_path, unin
     assert list((out / "labels").glob("before_resume_at_step_*/session_0001.npz"))
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("script", WITH_RIME)
 def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path, uninterrupted):
     out = tmp_path / "run"
     process = start_script(script, out, *RUNS[script], "--checkpoint-every", "0")
@@ -141,7 +143,7 @@ def test_seeded_reset_and_replayed_actions_put_the_env_back_exactly(env_id):
         seed=pebble.episode_seed(1, 0, 1))[0])
 
 
-@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("script", WITH_RIME)
 def test_labels_from_an_earlier_run_join_the_preference_dataset(script, tmp_path, uninterrupted):
     flags = [f for f in RUNS[script]]
     flags[flags.index("--max-feedback") + 1] = "10"

@@ -1,0 +1,1058 @@
+# RIME (Cheng et al. 2024): PEBBLE robust to wrong labels, on B-Pref's teachers; docs/rime.md
+import argparse
+import contextlib
+import io
+import json
+import math
+import os
+import signal
+import sys
+import time
+import warnings
+from collections import deque, namedtuple
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+
+from samplers import draw_segments, planned_labels, schedule_sizes, select, session_steps
+from sim_teacher import (TEACHERS, load_pairs, make_teacher, save_file, save_labels,
+                         set_labels_aside)
+
+
+@dataclass
+class Args:
+    exp_name: str = "rime"
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment"""
+    cuda: bool = True
+    """use the GPU when torch sees one"""
+    track: bool = False
+    """if toggled, log to Weights & Biases"""
+    wandb_project_name: str = "bpref"
+    """the Weights & Biases project"""
+    capture_video: bool = False
+    """if toggled, record each evaluation's first episode to videos/"""
+    output_dir: str = ""
+    """where the run's files go (default: runs/<run name>)"""
+    checkpoint_every: int = 50000
+    """steps between checkpoints (0: at the end and on SIGTERM/SIGINT)"""
+    resume: str = ""
+    """continue the run in this directory"""
+    labels_from: str = ""
+    """start D with an earlier run's labels (run directory or .npz)"""
+
+    # Algorithm specific arguments (walker-walk's; PRESETS: the others')
+    env_id: str = "walker-walk"
+    """DMC domain-task, Meta-World task or Gymnasium id"""
+    total_timesteps: int = 500_000
+    """total environment steps"""
+    teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic", "human"] = "oracle"
+    """simulated teacher (Section 3.3), or human (label_server.py)"""
+    teacher_beta: float = math.inf
+    """the teacher's rationality beta (inf: rational)"""
+    teacher_gamma: float = 1.0
+    """the teacher's myopic discount gamma"""
+    teacher_eps_mistake: float = 0.0
+    """the teacher's mistake probability"""
+    teacher_eps_skip: float = 0.0
+    """the teacher's adaptive skip fraction"""
+    teacher_eps_equal: float = 0.0
+    """the teacher's adaptive equal fraction"""
+    sampler: Literal["uniform", "disagreement", "entropy", "coverage", "disagreement-coverage",
+                     "entropy-coverage"] = "disagreement"
+    """query selection (paper Section 4.2)"""
+    schedule: Literal["uniform", "decay", "increase"] = "uniform"
+    """feedback schedule (paper Section 4.2)"""
+    max_feedback: int = 1000
+    """total number of queries (the budget)"""
+    feedback_per_session: int = 100
+    """queries per feedback session (uniform schedule)"""
+    feedback_every: int = 20_000
+    """environment steps between feedback sessions"""
+    segment_len: int = 50
+    """length H of a queried segment"""
+    seed_steps: int = 1000
+    """random-action steps at the start"""
+    unsup_steps: int = 9000
+    """unsupervised pre-training steps after the seed steps"""
+    hidden_dim: int = 1024
+    """hidden units of the actor and critic"""
+    num_layers: int = 2
+    """hidden layers of the actor and critic"""
+    batch_size: int = 1024
+    """SAC batch size"""
+    learning_rate: float = 5e-4
+    """learning rate of actor and critics"""
+    alpha_lr: float = 1e-4
+    """learning rate of the SAC temperature"""
+    eval_every: int = 10000
+    """environment steps between evaluations"""
+    eval_episodes: int = 10
+    """episodes per evaluation"""
+    ground_truth_reward: bool = False
+    """if toggled, SAC learns from the true reward, with no teacher"""
+    buffer_size: int = 0
+    """replay buffer capacity (0: total_timesteps)"""
+    gamma: float = 0.99
+    """discount of SAC"""
+    tau: float = 0.005
+    """critic target EMA rate"""
+    target_update_every: int = 2
+    """gradient steps between critic target updates"""
+    init_temperature: float = 0.1
+    """initial SAC temperature alpha"""
+    knn_k: int = 5
+    """k of the kNN state-entropy reward"""
+    reward_ensemble_size: int = 3
+    """reward models in the ensemble"""
+    reward_lr: float = 3e-4
+    """learning rate of the reward models"""
+    reward_batch_size: int = 128
+    """preference batch size of reward learning"""
+    reward_epochs: int = 50
+    """most epochs of reward learning per session (it stops at 97% accuracy)"""
+    label_smoothing: float = 0.0
+    """soft labels (1 - s) y + s / 2"""
+    candidate_multiplier: int = 10
+    """candidate pairs per query for the uncertainty and coverage samplers"""
+    query_recent_episodes: int = 100
+    """segments come from the last N complete episodes (0: all)"""
+    critic_reset_updates: int = 100
+    """SAC updates right after the first reward update (RIME keeps the critic)"""
+    rime_alpha: float = 0.5
+    """alpha of the lower bound -ln(rho) + alpha rho + min(beta_t var_KL, 3)"""
+    rime_beta_max: float = 3.0
+    """beta_t at first"""
+    rime_beta_min: float = 1.0
+    """beta_t after --rime-decay-epochs"""
+    rime_decay_epochs: int = 60
+    """reward-learning epochs over which beta_t falls linearly"""
+    rime_flip_eps: float = 0.001
+    """labels with KL above tau_upper = -ln(eps) are flipped"""
+    rime_min_epochs: int = 15
+    """reward-learning epochs per session before the early stop (98%)"""
+    rime_warm_updates: int = 5
+    """reward-model updates per pre-training step (the warm start)"""
+
+
+# Paper appendix, PEBBLE's hyperparameters (Args: walker-walk's); Meta-World feedback every 4950
+# steps so that 10,000 labels fit in 1M, segments of 50 as the reference's runs (differences.md)
+PRESETS = {
+    "quadruped-walk": dict(total_timesteps=1_000_000, feedback_every=30_000, learning_rate=1e-4),
+    "metaworld": dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50,
+                      feedback_every=4950, hidden_dim=256, num_layers=3, batch_size=512,
+                      learning_rate=3e-4, reward_epochs=10, rime_decay_epochs=600,
+                      rime_min_epochs=5),
+    "gym": dict(hidden_dim=256, batch_size=256, learning_rate=3e-4),
+}
+
+
+# Environments
+class DMCEnv(gym.Env):
+    """A dm_control task as a Gymnasium env with flat observations."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, domain, task, render_mode=None):
+        from dm_control import suite
+
+        self.dmc = suite.load(domain, task)
+        self.render_mode = render_mode
+        obs_dim = sum(int(np.prod(v.shape)) for v in self.dmc.observation_spec().values())
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,))
+        spec = self.dmc.action_spec()
+        self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32),
+                                           spec.maximum.astype(np.float32))
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self.dmc.task.random.seed(seed)
+        return self.flat(self.dmc.reset()), {}
+
+    def step(self, action):
+        time_step = self.dmc.step(action)
+        terminated = time_step.last() and time_step.discount == 0
+        truncated = time_step.last() and not terminated
+        return self.flat(time_step), time_step.reward, terminated, truncated, {}
+
+    def flat(self, time_step):
+        return np.concatenate([np.ravel(v) for v in time_step.observation.values()])
+
+    def render(self):
+        return self.dmc.physics.render(height=240, width=320, camera_id=0)
+
+
+class MetaWorldSeeding(gym.Wrapper):
+    """reset(seed=s) seeds the object and goal positions."""
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self.env.unwrapped.seed(seed)
+        return self.env.reset(options=options)
+
+
+def env_kind(env_id):
+    import metaworld
+
+    with warnings.catch_warnings(action="ignore"):
+        from dm_control import suite
+    if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
+        return "dmc"
+    if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
+        return "metaworld"
+    return "gym"
+
+
+def make_env(env_id, render_mode=None):
+    """(env, episode length T), actions in [-1, 1]."""
+    kind = env_kind(env_id)
+    if kind == "dmc":
+        env = DMCEnv(*env_id.split("-", 1), render_mode)
+        episode_len = int(env.dmc._step_limit)
+    elif kind == "metaworld":
+        env = gym.make("Meta-World/MT1", env_name=f"{env_id.removesuffix('-v3')}-v3",
+                       render_mode=render_mode, disable_env_checker=True)
+        env.get_wrapper_attr("toggle_terminate_on_success")(False)
+        # Reference code: a fresh hidden goal at each reset
+        env.unwrapped.set_task(env.get_wrapper_attr("tasks")[0])
+        env.get_wrapper_attr("toggle_sample_tasks_on_reset")(False)
+        env.unwrapped._partially_observable = True
+        env.unwrapped._freeze_rand_vec = False
+        env.unwrapped.seeded_rand_vec = True
+        episode_len = env.spec.max_episode_steps or 500
+        env = MetaWorldSeeding(env)
+    else:
+        try:
+            env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
+        except (gym.error.Error, ImportError) as error:
+            raise ValueError(f"--env-id {env_id!r} is not a DMC task (walker-walk), a Meta-World "
+                             f"task (button-press) or a Gymnasium id: {error}") from None
+        episode_len = env.spec.max_episode_steps
+        spaces = (env.action_space, env.observation_space)
+        if not (all(isinstance(s, gym.spaces.Box) for s in spaces) and episode_len):
+            raise ValueError(f"--env-id {env_id!r} needs Box spaces and a time limit")
+    bound = np.ones(env.action_space.shape, np.float32)
+    env = gym.wrappers.RescaleAction(env, -bound, bound)
+    space = gym.spaces.Box(-np.inf, np.inf, env.observation_space.shape, np.float32)
+    env = gym.wrappers.TransformObservation(env, lambda obs: np.asarray(obs, np.float32), space)
+    return env, episode_len
+
+
+TRAIN_STREAM = 0  # episode seeds of the training and evaluation envs
+EVAL_STREAM = 1
+
+
+def numpy_seeds(seed):
+    """Streams of the sampler, the teacher and the seed steps' actions."""
+    return np.random.SeedSequence(seed).spawn(3)
+
+
+def episode_seed(run_seed, stream, episode):
+    return int(np.random.SeedSequence([run_seed, stream, episode]).generate_state(1)[0])
+
+
+# Networks
+def mlp(in_dim, out_dim, hidden_dim, num_layers, activation=nn.ReLU):
+    layers = []
+    for i in range(num_layers):
+        layers += [nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation()]
+    return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
+
+
+def orthogonal_init(module):
+    """Reference code (utils.weight_init): orthogonal weights, zero biases."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.orthogonal_(layer.weight)
+            nn.init.zeros_(layer.bias)
+    return module
+
+
+LOG_STD_MIN = -5  # the reference SAC's
+LOG_STD_MAX = 2
+
+
+class Actor(nn.Module):
+    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
+        super().__init__()
+        self.net = orthogonal_init(mlp(obs_dim, 2 * action_dim, hidden_dim, num_layers))
+
+    def forward(self, obs):
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        return mean, LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+
+    def sample(self, obs):
+        mean, log_std = self(obs)
+        pre_tanh = mean + log_std.exp() * torch.randn_like(mean)
+        return torch.tanh(pre_tanh), tanh_gaussian_log_prob(mean, log_std, pre_tanh)
+
+
+def mean_policy(actor, device):
+    """The policy evaluated: an observation -> the mean action."""
+    return lambda obs: torch.tanh(actor(torch.as_tensor(obs, device=device))[0])
+
+
+class TwinCritic(nn.Module):
+    def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
+        super().__init__()
+        self.sizes = (obs_dim, action_dim, hidden_dim, num_layers)
+        self.q1 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
+        self.q2 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
+        orthogonal_init(self)
+
+    def forward(self, obs, action):
+        x = torch.cat([obs, action], dim=-1)
+        return self.q1(x), self.q2(x)
+
+
+class RewardEnsemble(nn.Module):
+    """Appendix, reward model: 3 x 256 LeakyReLU, tanh output; inputs standardised by D."""
+
+    def __init__(self, obs_dim, action_dim, size):
+        super().__init__()
+        self.members = nn.ModuleList(
+            nn.Sequential(mlp(obs_dim + action_dim, 1, 256, 3, nn.LeakyReLU), nn.Tanh())
+            for _ in range(size))
+        self.register_buffer("input_mean", torch.zeros(obs_dim + action_dim))
+        self.register_buffer("input_std", torch.ones(obs_dim + action_dim))
+        self.register_buffer("input_clip", torch.tensor(math.inf))
+
+    def normalize(self, obs_action):
+        centred = (obs_action - self.input_mean) / self.input_std
+        return centred.clamp(-self.input_clip, self.input_clip)
+
+    def set_input_stats(self, states):
+        obs_dim = states.shape[-1]
+        self.input_mean[:obs_dim] = states.mean(0)
+        self.input_std[:obs_dim] = (states.var(0, unbiased=False) + 1e-8).sqrt()
+        self.input_clip.fill_(10.0)
+
+    def forward(self, obs_action):
+        inputs = self.normalize(obs_action)
+        return torch.stack([member(inputs) for member in self.members])
+
+
+# Algorithm
+def tanh_gaussian_log_prob(mean, log_std, pre_tanh):
+    """log pi(a|s), a = tanh(u), u ~ N(mean, std^2) (SAC paper, appendix C)."""
+    z = (pre_tanh - mean) / log_std.exp()
+    gaussian = -0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)
+    squash = 2 * (math.log(2) - pre_tanh - F.softplus(-2 * pre_tanh))
+    return (gaussian - squash).sum(-1, keepdim=True)
+
+
+def sac_critic_loss(q1, q2, rewards, terminated, next_q, next_log_prob, alpha, gamma):
+    """Appendix Eq. (6) for both critics; bootstraps through a time limit."""
+    target = (rewards + gamma * (1 - terminated) * (next_q - alpha * next_log_prob)).detach()
+    return F.mse_loss(q1, target) + F.mse_loss(q2, target)
+
+
+def sac_actor_loss(log_prob, q1, q2, alpha):
+    """Appendix Eq. (7), with the smaller critic."""
+    return (alpha * log_prob - torch.min(q1, q2)).mean()
+
+
+def temperature_loss(log_alpha, log_prob, target_entropy):
+    """SAC's learned temperature (reference code: agent/sac.py)."""
+    return (log_alpha.exp() * (-log_prob.detach() - target_entropy)).mean()
+
+
+def optimize(optimizer, loss):
+    """A gradient step of this optimizer's parameters only."""
+    optimizer.zero_grad()
+    loss.backward(inputs=[param for group in optimizer.param_groups for param in group["params"]])
+    optimizer.step()
+
+
+def adam(params, lr):
+    return torch.optim.Adam(params, lr=lr, fused=True)
+
+
+Batch = namedtuple("Batch", "obs actions rewards next_obs terminated")
+
+
+def sac_update(batch, rewards, actor, critic, critic_target, log_alpha, actor_opt, critic_opt,
+               alpha_opt, gamma):
+    alpha = log_alpha.exp().detach()
+    with torch.no_grad():
+        next_actions, next_log_prob = actor.sample(batch.next_obs)
+        next_q = torch.min(*critic_target(batch.next_obs, next_actions))
+    q1, q2 = critic(batch.obs, batch.actions)
+    critic_loss = sac_critic_loss(q1, q2, rewards, batch.terminated, next_q, next_log_prob, alpha,
+                                  gamma)
+    optimize(critic_opt, critic_loss)
+    actions, log_prob = actor.sample(batch.obs)
+    actor_loss = sac_actor_loss(log_prob, *critic(batch.obs, actions), alpha)
+    optimize(actor_opt, actor_loss)
+    alpha_loss = temperature_loss(log_alpha, log_prob, -batch.actions.shape[-1])
+    optimize(alpha_opt, alpha_loss)
+    losses = {"critic_loss": critic_loss, "actor_loss": actor_loss, "alpha_loss": alpha_loss,
+              "entropy": -log_prob.mean(), "alpha": alpha, "batch_reward": rewards.mean()}
+    return {name: value.detach() for name, value in losses.items()}
+
+
+def soft_update(critic, critic_target, tau):
+    with torch.no_grad():
+        for param, target_param in zip(critic.parameters(), critic_target.parameters()):
+            target_param.lerp_(param, tau)
+
+
+class ReplayBuffer(nn.Module):
+    """Transitions, the oldest overwritten when full; rewards are r_hat."""
+
+    def __init__(self, capacity, obs_dim, action_dim):
+        super().__init__()
+        self.size = 0
+        self.pos = 0
+        for name, dim in zip(Batch._fields, (obs_dim, action_dim, 1, obs_dim, 1)):
+            self.register_buffer(name, torch.zeros(capacity, dim))
+
+    def add(self, *transition):
+        for name, value in zip(Batch._fields, transition):
+            getattr(self, name)[self.pos] = torch.as_tensor(value)
+        self.pos = (self.pos + 1) % len(self.obs)
+        self.size = min(self.size + 1, len(self.obs))
+
+    def sample(self, batch_size):
+        idx = torch.randint(self.size, (batch_size,), device=self.obs.device)
+        return Batch(*(getattr(self, name)[idx] for name in Batch._fields))
+
+    def get_extra_state(self):
+        return [self.size, self.pos]
+
+    def set_extra_state(self, state):
+        self.size, self.pos = state
+
+
+def knn_distance(states, reference, k):
+    """Eq. (8) without the log: distance to the k-th nearest other state."""
+    distances = torch.cdist(states, reference)
+    nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
+    return nearest[:, -1:].contiguous()
+
+
+def intrinsic_reward(batch, buffer, k):
+    """Algorithm 2's r_int(s_t) among the buffer's states."""
+    return knn_distance(batch.obs, buffer.obs[: buffer.size], k)
+
+
+@dataclass
+class RunningMeanStd:
+    """Of the kNN reward (Chan et al.'s parallel update), and its extremes."""
+
+    mean: float = 0.0
+    var: float = 1.0
+    count: int = 0
+    low: float = math.inf
+    high: float = -math.inf
+
+    def update(self, x):
+        self.low = min(self.low, x.min().item())
+        self.high = max(self.high, x.max().item())
+        n = x.numel()
+        total = self.count + n
+        delta = x.mean().item() - self.mean
+        m2 = self.var * self.count + x.var(unbiased=False).item() * n
+        m2 += delta**2 * self.count * n / total
+        self.mean += delta * n / total
+        self.var = m2 / total
+        self.count = total
+
+
+def warm_start(reward_model, optimizer, buffer, stats, args):
+    """RIME's warm start: r_hat fits the kNN reward scaled into [-1, 1] by its extremes."""
+    if reward_model.input_clip.isinf():  # inputs standardised by the seed steps' states
+        reward_model.set_input_stats(buffer.obs[: buffer.size])
+    std = max(math.sqrt(stats.var), 1e-8)
+    scale = max(abs(stats.low - stats.mean), abs(stats.high - stats.mean), 1e-8) / std
+    for _ in range(args.rime_warm_updates):
+        batch = buffer.sample(args.batch_size)
+        target = (intrinsic_reward(batch, buffer, args.knn_k) - stats.mean) / std / scale
+        inputs = reward_model.normalize(torch.cat([batch.obs, batch.actions], -1))
+        loss = sum(F.mse_loss(member(inputs), target) for member in reward_model.members)
+        optimize(optimizer, loss)
+
+
+def relabel(buffer, reward_model, chunk=16384):
+    """PEBBLE's relabelling of every stored transition with r_hat."""
+    with torch.no_grad():
+        for i in range(0, buffer.size, chunk):
+            obs_action = torch.cat([buffer.obs[i : i + chunk], buffer.actions[i : i + chunk]], -1)
+            buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
+
+
+def coverage_features(inputs0, inputs1, obs_dim):
+    """Appendix, coverage sampling: both segments' states."""
+    states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
+    return torch.cat(states, 1).cpu().numpy()
+
+
+def preference_loss(segment_returns, y, label_smoothing=0.0):
+    """Eq. (3): cross-entropy of P[sigma1 > sigma0] (Eq. (2)) against (1 - y, y)."""
+    target = (1 - label_smoothing) * y + label_smoothing / 2
+    log_probs = F.log_softmax(segment_returns, dim=-1)
+    return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
+
+
+@dataclass
+class Discriminator:
+    """RIME's denoising discriminator: statistics of the trusted labels' KL."""
+
+    rho: float = 0.0  # an EMA of the largest trusted KL
+    mean: float = 0.0
+    var: float = 1.0
+    count: int = 0
+    epochs: int = 0  # reward-learning epochs so far, RIME's t
+
+    def split(self, kl, args):
+        """(trusted, flipped): KL below the lower bound, KL above tau_upper = -ln(eps)."""
+        decay = (args.rime_beta_max - args.rime_beta_min) * self.epochs / args.rime_decay_epochs
+        beta = max(args.rime_beta_min, args.rime_beta_max - decay)
+        tau_base = -math.log(self.rho + 1e-8) + args.rime_alpha * self.rho
+        tau_lower = tau_base + min(beta * self.var, 3)
+        trusted = kl < tau_lower
+        flipped = kl > -math.log(args.rime_flip_eps)
+        if trusted.any():
+            self.update(kl[trusted])
+        return trusted, flipped
+
+    def update(self, kl):
+        n = kl.numel()
+        total = self.count + n
+        delta = kl.mean().item() - self.mean
+        m2 = self.var * self.count + kl.var(unbiased=False).item() * n
+        m2 += delta**2 * self.count * n / total
+        self.rho += 0.1 * (kl.max().item() - self.rho)
+        self.mean += 0.1 * delta
+        self.var = m2 / total
+        self.count = total
+
+
+def train_reward(reward_model, optimizer, preferences, discriminator, args):
+    """RIME's reward learning: each epoch, the discriminator trusts, flips or drops each label."""
+    inputs0 = reward_model.normalize(preferences["inputs0"])
+    inputs1 = reward_model.normalize(preferences["inputs1"])
+    y = preferences["y"]
+    warmup = max(1, round(args.max_feedback / args.feedback_per_session * args.rime_min_epochs / 3))
+    for epoch in range(args.reward_epochs):
+        for group in optimizer.param_groups:  # RIME's code: a linear warm-up
+            group["lr"] = args.reward_lr * min(1.0, discriminator.epochs / warmup)
+        with torch.no_grad():
+            p = torch.stack([F.softmax(torch.cat([member(inputs0).sum(1), member(inputs1).sum(1)],
+                                                 -1), -1) for member in reward_model.members])
+        p = p.mean(0)
+        kl = -(1 - y) * p[:, 0].log() - y * p[:, 1].log()  # given label vs mean P
+        trusted, flipped = discriminator.split(kl, args)
+        labels = torch.where(flipped, 1 - y, y)
+        train = torch.cat([trusted.nonzero()[:, 0], flipped.nonzero()[:, 0]])
+        orders = [train[torch.randperm(len(train), device=y.device)] for _ in reward_model.members]
+        correct = torch.zeros((), device=y.device)
+        losses = []
+        for start in range(0, len(train), args.reward_batch_size):
+            loss = 0.0
+            for member, order in zip(reward_model.members, orders):
+                idx = order[start : start + args.reward_batch_size]
+                returns = torch.cat([member(inputs0[idx]).sum(1), member(inputs1[idx]).sum(1)], -1)
+                loss = loss + preference_loss(returns, labels[idx], args.label_smoothing)
+                right = (returns[:, 1] > returns[:, 0]) == (labels[idx] > 0.5)
+                correct = correct + (right & (labels[idx] != 0.5)).sum()
+            optimize(optimizer, loss)
+            losses.append(loss.detach() / len(reward_model.members))
+        discriminator.epochs += 1
+        strict = (labels[train] != 0.5).sum().item()
+        accuracy = correct.item() / (strict * len(reward_model.members) or 1)
+        if accuracy > 0.98 and epoch > args.rime_min_epochs:
+            break
+    loss = torch.stack(losses).mean().item() if losses else math.nan
+    if losses and not math.isfinite(loss):
+        raise FloatingPointError(f"non-finite reward-model loss ({loss})")
+    return loss, accuracy, trusted, flipped
+
+
+def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng):
+    """SAMPLE() of Algorithm 3: the chosen pairs and their (obs, action) inputs."""
+    n_candidates = size if sampler == "uniform" else size * args.candidate_multiplier
+    candidates = draw_segments(episodes, args.segment_len, n_candidates, rng)
+    inputs0, inputs1 = (torch.as_tensor(np.concatenate([candidates[f"obs{i}"], candidates[
+        f"actions{i}"]], -1), device=preferences["y"].device) for i in (0, 1))
+    chosen = np.arange(size)
+    if sampler != "uniform":
+        obs_dim = candidates["obs0"].shape[-1]
+        with torch.no_grad():
+            probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))
+        labelled = None
+        if sampler.endswith("coverage"):
+            labelled = coverage_features(preferences["inputs0"], preferences["inputs1"], obs_dim)
+        features = coverage_features(inputs0, inputs1, obs_dim)
+        probs = probs[..., 0].cpu().numpy()
+        chosen = select(sampler, size, probs=probs, rng=rng, labeled_features=labelled,
+                        features=features)
+    segments = {key: value[chosen] for key, value in candidates.items()}
+    return segments, inputs0[chosen], inputs1[chosen]
+
+
+def add_labels(preferences, inputs0, inputs1, y, keep, truth=None):
+    """D grows by the kept labels, both segments' (obs, action) inputs and the true label."""
+    truth = np.full(len(y), math.nan) if truth is None else truth
+    for key, value in zip(preferences, (inputs0, inputs1, y, truth)):
+        new = torch.as_tensor(value[keep]).float().to(preferences[key].device)
+        preferences[key] = torch.cat([preferences[key], new])
+
+
+def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
+                     reward_optimizer, discriminator, teacher, rng, writer, episode_len):
+    """Algorithm 3, lines 9-13: queries, labels, D, reward learning. Returns |D|."""
+    sampler = args.sampler if progress.pretrained else "uniform"  # reference: first uniform
+    segments, inputs0, inputs1 = sample_queries(sampler, size, episodes, reward_model, preferences,
+                                                args, rng)
+    # Appendix, adaptive thresholds
+    mean_return = float(np.mean(progress.recent_returns))
+    teacher.set_thresholds(mean_return, args.segment_len, episode_len)
+    y, keep = teacher.label(segments["rewards0"], segments["rewards1"], segments | {"step": step})
+    record = dict(step=step, y=y, keep=keep,
+                  threshold_scale=mean_return * args.segment_len / episode_len, **segments)
+    save_labels(args.output_dir, progress.sessions_done, **record)
+    progress.feedback_used += size
+    progress.sessions_done += 1
+    progress.next_feedback_step = step + args.feedback_every
+    true_returns = segments["rewards1"].sum(1) - segments["rewards0"].sum(1)
+    add_labels(preferences, inputs0, inputs1, y, keep, (np.sign(true_returns) + 1) / 2)
+    writer.add_scalar("feedback/labels", progress.feedback_used, step)
+    writer.add_scalar("feedback/skipped", (~keep).sum(), step)
+    if len(preferences["y"]) == 0:  # all skipped so far
+        print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
+        return 0
+    states = torch.cat([preferences["inputs0"], preferences["inputs1"]], 1)
+    reward_model.set_input_stats(states[..., : segments["obs0"].shape[-1]].flatten(0, 1))
+    loss, accuracy, trusted, flipped = train_reward(reward_model, reward_optimizer, preferences,
+                                                    discriminator, args)
+    truth = preferences["truth"]
+    known = (preferences["y"] != 0.5) & (truth != 0.5) & truth.isfinite()
+    wrong = known & (preferences["y"] != truth)  # the teacher's mistakes
+    found = (wrong & ~trusted).sum().item()
+    counts = {"trusted": trusted.sum().item(), "flipped": flipped.sum().item(),
+              "dropped": (~trusted & ~flipped).sum().item(),
+              "precision": found / (known & ~trusted).sum().item() if (known & ~trusted).any()
+              else math.nan, "recall": found / wrong.sum().item() if wrong.any() else math.nan}
+    save_labels(args.output_dir, progress.sessions_done - 1, **record, **counts)
+    for name, value in counts.items():
+        writer.add_scalar(f"rime/{name}", value, step)
+    writer.add_scalar("reward/loss", loss, step)
+    writer.add_scalar("reward/accuracy", accuracy, step)
+    print(f"step {step}: feedback session {progress.sessions_done}: reward model trained on "
+          f"{len(preferences['y'])} labels, accuracy {accuracy:.3f}")
+    return len(preferences["y"])
+
+
+def evaluate(policy, reward_model, env, seeds, device):
+    """True return (B-Pref's metric), success, r_hat's correlation with the true reward."""
+    returns = []
+    successes = []
+    true_rewards = []
+    learned = []
+    for seed in seeds:
+        obs, _ = env.reset(seed=seed)
+        done = False
+        returns.append(0.0)
+        successes.append(False)
+        while not done:
+            with torch.no_grad():
+                action = policy(obs)
+                if reward_model is not None:
+                    obs_action = torch.cat([torch.as_tensor(obs, device=device), action])
+                    learned.append(reward_model(obs_action).mean().item())
+            obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
+            done = terminated or truncated
+            returns[-1] += reward
+            successes[-1] = successes[-1] or bool(info.get("success"))
+            true_rewards.append(reward)
+    correlation = math.nan
+    if learned and min(np.std(learned), np.std(true_rewards)) > 0:
+        correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
+    return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
+            "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
+
+
+def evaluation(args, step, progress, policy, reward_model, env, writer, device):
+    """A row of eval.csv."""
+    if args.capture_video:
+        env.name_prefix = f"step_{step}"
+    first = len(progress.eval_rows) * args.eval_episodes
+    seeds = [episode_seed(args.seed, EVAL_STREAM, first + j) for j in range(args.eval_episodes)]
+    learned = reward_model if progress.pretrained and not args.ground_truth_reward else None
+    result = evaluate(policy, learned, env, seeds, device)
+    if args.capture_video and env.recording:
+        env.stop_recording()
+    wall_time = round(time.time() - progress.start_time, 1)
+    progress.eval_rows.append({"step": step, **result, "feedback": progress.feedback_used,
+                               "wall_time": wall_time})
+    lines = [progress.eval_rows[0]] + [map(str, row.values()) for row in progress.eval_rows]
+    save_file(os.path.join(args.output_dir, "eval.csv"), "".join(
+        ",".join(line) + "\n" for line in lines).encode())
+    for name, value in result.items():
+        writer.add_scalar(f"eval/{name}", value, step)
+    writer.add_scalar("charts/SPS", step / wall_time, step)
+    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS")
+
+
+# Plumbing: command line, files, checkpoints, logging
+def fail(message, code=2):
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
+RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
+                     "wandb_project_name", "capture_video")
+RANGES = [  # (flags, test, rule); the teacher checks its own
+    ("seed seed_steps unsup_steps checkpoint_every buffer_size query_recent_episodes "
+     "critic_reset_updates", lambda v: v >= 0, ">= 0"),
+    ("max_feedback feedback_per_session feedback_every hidden_dim num_layers "
+     "batch_size eval_every eval_episodes knn_k reward_ensemble_size reward_batch_size "
+     "reward_epochs candidate_multiplier target_update_every",
+     lambda v: v >= 1, ">= 1"),
+    ("learning_rate alpha_lr reward_lr init_temperature", lambda v: v > 0, "> 0"),
+    ("gamma tau", lambda v: 0 < v <= 1, "in (0, 1]"),
+    ("label_smoothing", lambda v: 0 <= v < 1, "in [0, 1)"),
+]
+
+
+def task_defaults(env_id, teacher):
+    """Args with the task's preset and the teacher's fields."""
+    preset = PRESETS.get(env_id.removesuffix("-v3")) or PRESETS.get(env_kind(env_id), {})
+    teacher_fields = {f"teacher_{k}": v for k, v in TEACHERS.get(teacher, {}).items()}
+    return Args(env_id=env_id, **preset, **teacher_fields)
+
+
+def parse_args():
+    """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
+    pre = argparse.ArgumentParser(add_help=False)
+    for flag in ("--env-id", "--teacher", "--resume"):
+        pre.add_argument(flag, default="")
+    given = pre.parse_known_args()[0]
+    default = task_defaults(given.env_id or Args.env_id, given.teacher)
+    if given.resume:
+        try:
+            with open(os.path.join(given.resume, "config.json")) as f:
+                saved = json.load(f)
+        except (OSError, ValueError) as error:
+            fail(f"--resume {given.resume!r}: no config.json there ({error})")
+        if set(saved) != {f.name for f in fields(Args)}:
+            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
+        default = Args(**saved)
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            args = tyro.cli(Args, default=default)
+    except SystemExit as exit_:
+        if exit_.code:  # tyro's box, up to its first rule, in one line
+            box = captured.getvalue().split("\n")[1:]
+            text = " ".join(line.strip("│╭╰╮╯ ") for line in box)
+            fail(" ".join(text.split("─")[0].split()))
+        raise
+    if given.resume:
+        changed = [k for k, v in vars(args).items()
+                   if v != getattr(default, k) and k not in RESUME_MAY_CHANGE]
+        if changed:
+            fail(f"--{changed[0].replace('_', '-')} cannot change when resuming")
+        args.output_dir = given.resume
+    if not args.output_dir:
+        run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}"
+        args.output_dir = os.path.join("runs", f"{run_name}__{int(time.time())}")
+    return args
+
+
+def check_args(args, episode_len):
+    """ValueError naming the first flag out of its range."""
+    pretrain = args.seed_steps + args.unsup_steps
+    rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names.split()] + [
+        ("feedback_per_session", lambda v: v <= args.max_feedback, "<= --max-feedback"),
+        ("segment_len", lambda v: 1 <= v <= episode_len, f"in [1, {episode_len}] (T)"),
+        ("total_timesteps", lambda v: v > pretrain, f"> --seed-steps + --unsup-steps ({pretrain})"),
+        ("buffer_size", lambda v: v == 0 or v >= max(args.batch_size, episode_len),
+         "0 or >= the batch size and T"),
+    ]
+    for name, ok, rule in rules:
+        if not ok(getattr(args, name)):
+            flag = name.replace("_", "-")
+            raise ValueError(f"--{flag} must be {rule}, got {getattr(args, name)}")
+
+
+def check_video(eval_env):
+    """--capture-video: render one frame now."""
+    try:
+        import moviepy  # noqa: F401
+
+        with warnings.catch_warnings(action="ignore"):
+            eval_env.reset(seed=0)
+            eval_env.render()
+    except Exception as error:
+        print(f"error: --capture-video cannot render ({type(error).__name__}); it needs moviepy "
+              "and, without a display, MUJOCO_GL=egl or osmesa", file=sys.stderr, flush=True)
+        os._exit(2)  # not sys.exit: the GL context's finalizer would print a traceback
+
+
+def snapshot(parts):
+    """The checkpoint: one dict of plain tensors and numbers, a key per part."""
+    state = {"torch_rng": torch.get_rng_state()}
+    if torch.cuda.is_initialized():
+        state["cuda_rng"] = torch.cuda.get_rng_state_all()
+    for name, part in parts.items():
+        if hasattr(part, "state_dict"):
+            state[name] = part.state_dict()
+        elif isinstance(part, np.random.Generator):
+            state[name] = part.bit_generator.state
+        elif is_dataclass(part):
+            state[name] = asdict(part)
+        else:  # a tensor, a dict of tensors, the query pool
+            state[name] = list(part) if isinstance(part, deque) else part
+    return state
+
+
+def restore(parts, state, device):
+    torch.set_rng_state(state["torch_rng"])
+    if "cuda_rng" in state and device.type == "cuda":
+        torch.cuda.set_rng_state_all(state["cuda_rng"])
+    for name, part in parts.items():
+        if hasattr(part, "load_state_dict"):
+            part.load_state_dict(state[name])
+        elif isinstance(part, np.random.Generator):
+            part.bit_generator.state = state[name]
+        elif is_dataclass(part):
+            vars(part).update(state[name])
+        elif isinstance(part, torch.Tensor):
+            part.data.copy_(state[name])
+        elif isinstance(part, dict):
+            part.update({key: value.to(device) for key, value in state[name].items()})
+        else:
+            part.extend(state[name])
+
+
+def check_finite(losses):
+    """A NaN or infinity stops the run before a checkpoint could hold it."""
+    if bad := [name for name, value in losses.items() if not math.isfinite(value)]:
+        raise FloatingPointError(f"non-finite {', '.join(bad)}")
+
+
+def save_checkpoint(path, parts):
+    data = io.BytesIO()
+    torch.save(snapshot(parts), data)
+    save_file(path, data.getvalue())
+
+
+@dataclass
+class Progress:
+    """What the main loop carries besides networks, optimizers and buffers."""
+
+    global_step: int = 0
+    episodes: int = 0
+    running_episode: tuple = field(default_factory=lambda: ([], [], []))
+    recent_returns: list = field(default_factory=list)  # of the last 10 episodes
+    sessions_done: int = 0
+    feedback_used: int = 0
+    next_feedback_step: int = 0
+    pretrained: bool = False
+    eval_rows: list = field(default_factory=list)
+    start_time: float = 0.0
+
+
+if __name__ == "__main__":
+    args = parse_args()
+    device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
+    try:
+        env, episode_len = make_env(args.env_id)
+        eval_env, _ = make_env(args.env_id, "rgb_array" if args.capture_video else None)
+        if args.capture_video:
+            check_video(eval_env)
+        check_args(args, episode_len)
+        sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
+        episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool
+        teacher_fields = {k[8:]: v for k, v in vars(args).items() if k.startswith("teacher_")}
+        teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, episodes,
+                               **teacher_fields)
+        obs_dim = env.observation_space.shape[0]
+        action_dim = env.action_space.shape[0]
+        empty = torch.zeros(0, args.segment_len, obs_dim + action_dim, device=device)
+        preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device),
+                       "truth": torch.zeros(0, device=device)}
+        if args.labels_from and not args.resume:
+            add_labels(preferences, *load_pairs(args.labels_from, empty.shape[1:]))
+        checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
+        if args.resume and not os.path.isfile(checkpoint_path):
+            raise ValueError(f"--resume {args.output_dir!r}: no checkpoint.pt there")
+        if not args.resume and os.path.isdir(args.output_dir) and os.listdir(args.output_dir):
+            raise ValueError(f"--output-dir {args.output_dir!r} already holds a run")
+        os.makedirs(os.path.join(args.output_dir, "labels"), exist_ok=True)
+        if not args.resume:
+            save_file(os.path.join(args.output_dir, "config.json"), json.dumps(vars(args)).encode())
+    except (ValueError, OSError) as error:
+        fail(str(error))
+    if args.capture_video:
+        eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(args.output_dir, "videos"),
+                                            episode_trigger=lambda e: e % args.eval_episodes == 0)
+    if args.track:
+        import wandb
+
+        wandb.init(project=args.wandb_project_name, sync_tensorboard=True, config=vars(args),
+                   name=os.path.basename(args.output_dir), save_code=True)
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(args.output_dir)
+    table = "\n".join(f"|{key}|{value}|" for key, value in vars(args).items())
+    writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+
+    # Seeding: numpy streams, torch, every reset
+    rng = np.random.default_rng(sampler_seed)
+    action_rng = np.random.default_rng(action_seed)
+    torch.manual_seed(args.seed)
+    torch.set_flush_denormal(True)
+    actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
+    critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
+    critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
+    critic_target.load_state_dict(critic.state_dict())
+    actor_optimizer = adam(actor.parameters(), args.learning_rate)
+    critic_optimizer = adam(critic.parameters(), args.learning_rate)
+    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
+    alpha_optimizer = adam([log_alpha], args.alpha_lr)
+    reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
+    reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
+    buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim).to(device)
+    intrinsic_stats = RunningMeanStd()
+    discriminator = Discriminator()
+    # Feedback sessions
+    first_session = args.seed_steps + args.unsup_steps + 1
+    steps = session_steps(first_session, args.feedback_every, args.total_timesteps)
+    session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session,
+                                   steps - 1, args.total_timesteps)
+    planned = planned_labels(session_sizes, first_session, args.feedback_every,
+                             args.total_timesteps)
+    if planned < args.max_feedback and not args.ground_truth_reward:
+        print(f"note: only {planned} of the {args.max_feedback} labels fit in the run")
+    progress = Progress(next_feedback_step=first_session, start_time=time.time())
+    parts = {"progress": progress, "actor": actor, "critic": critic,
+             "critic_target": critic_target, "reward_model": reward_model,
+             "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
+             "alpha_optimizer": alpha_optimizer, "reward_optimizer": reward_optimizer,
+             "buffer": buffer, "teacher": teacher, "log_alpha": log_alpha,
+             "intrinsic_stats": intrinsic_stats, "discriminator": discriminator,
+             "preferences": preferences, "rng": rng,
+             "action_rng": action_rng, "episodes": episodes}
+    if args.resume:
+        restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
+        if progress.global_step >= args.total_timesteps:
+            fail(f"the run in {args.output_dir!r} has already finished")
+        print(f"resuming from the checkpoint at step {progress.global_step}")
+        set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
+        progress.start_time += time.time() - os.path.getmtime(checkpoint_path)
+    # The running episode again from its seed and actions
+    obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
+    for action in progress.running_episode[1]:
+        obs = env.step(np.array(action, np.float32))[0]
+    stop = []  # SIGTERM or SIGINT: checkpoint, exit
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda signum, frame: stop.append(signum))
+    losses = {}
+
+    # Algorithm 3 (PEBBLE), Algorithm 2 (unsupervised pre-training) first
+    try:
+        for global_step in range(progress.global_step + 1, args.total_timesteps + 1):
+            # Feedback session, relabelling, critic reset (Algorithm 3, lines 9-17)
+            new_reward = args.ground_truth_reward and global_step == first_session
+            if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
+                    and progress.sessions_done < len(session_sizes)
+                    and any(len(episode[0]) >= args.segment_len for episode in episodes)):
+                if args.teacher == "human":  # --resume asks it again
+                    save_checkpoint(checkpoint_path, parts)
+                size = int(session_sizes[progress.sessions_done])
+                n_labels = feedback_session(args, global_step, progress, size, episodes,
+                                            preferences, reward_model, reward_optimizer,
+                                            discriminator, teacher, rng, writer, episode_len)
+                if n_labels:
+                    relabel(buffer, reward_model)
+                new_reward = n_labels > 0 and not progress.pretrained
+            if new_reward:
+                progress.pretrained = True
+                for update in range(1, args.critic_reset_updates + 1):
+                    batch = buffer.sample(args.batch_size)
+                    sac_update(batch, batch.rewards, actor, critic, critic_target, log_alpha,
+                               actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
+                    if update % args.target_update_every == 0:
+                        soft_update(critic, critic_target, args.tau)
+
+            # Act, step, store
+            if global_step <= args.seed_steps:
+                action = action_rng.uniform(-1, 1, action_dim).astype(np.float32)
+            else:
+                with torch.no_grad():
+                    action = actor.sample(torch.as_tensor(obs, device=device)[None])[0]
+                action = action[0].cpu().numpy()
+            next_obs, true_reward, terminated, truncated, _ = env.step(action)
+            if not (math.isfinite(true_reward) and np.isfinite(next_obs).all()):
+                raise FloatingPointError("non-finite reward or observation from the environment")
+            reward = float(true_reward) if args.ground_truth_reward else 0.0
+            if progress.pretrained and not args.ground_truth_reward:
+                with torch.no_grad():
+                    reward = reward_model(torch.as_tensor(np.concatenate([obs, action]),
+                                                          device=device)).mean()
+            buffer.add(obs, action, reward, next_obs, terminated)
+            for part, value in zip(progress.running_episode, (obs, action, true_reward)):
+                part.append(np.asarray(value).tolist())
+            obs = next_obs
+            if terminated or truncated:  # to the query pool
+                seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes)
+                episodes.append((*map(torch.tensor, progress.running_episode), seed))
+                episode_return = sum(progress.running_episode[2])
+                progress.recent_returns = (progress.recent_returns + [episode_return])[-10:]
+                writer.add_scalar("charts/episodic_return", episode_return, global_step)
+                progress.running_episode = ([], [], [])
+                progress.episodes += 1
+                obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
+
+            # SAC update
+            if global_step > args.seed_steps:
+                batch = buffer.sample(args.batch_size)
+                rewards = batch.rewards
+                if not progress.pretrained:  # Algorithm 2; RIME: (r - mean) / 3 std in [-1, 1]
+                    rewards = intrinsic_reward(batch, buffer, args.knn_k)
+                    intrinsic_stats.update(rewards)
+                    std = max(math.sqrt(intrinsic_stats.var), 1e-8)
+                    rewards = ((rewards - intrinsic_stats.mean) / (3 * std)).clamp(-1, 1)
+                    warm_start(reward_model, reward_optimizer, buffer, intrinsic_stats, args)
+                losses = sac_update(batch, rewards, actor, critic, critic_target, log_alpha,
+                                    actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
+                if (global_step - args.seed_steps) % args.target_update_every == 0:
+                    soft_update(critic, critic_target, args.tau)
+                if global_step % 100 == 0:
+                    for name, value in losses.items():
+                        writer.add_scalar(f"losses/{name}", value, global_step)
+                    check_finite(losses)
+
+            progress.global_step = global_step
+            if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
+                evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
+                           eval_env, writer, device)
+            if (args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop
+                    or global_step == args.total_timesteps):
+                check_finite(losses)
+                save_checkpoint(checkpoint_path, parts)
+            if stop and global_step < args.total_timesteps:
+                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
+                      f"continue with --resume {args.output_dir}", flush=True)
+                sys.exit(128 + stop[0])
+    except (FloatingPointError, OSError) as error:
+        fail(f"{error} at step {progress.global_step + 1}; the run stopped, its last checkpoint "
+             f"in {args.output_dir} is intact", 3)
+
+    final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
+                   "reward_model": reward_model.state_dict()}
+    torch.save(final_model, os.path.join(args.output_dir, "final_model.pt"))
+    print(f"done: {progress.sessions_done} feedback sessions, {progress.feedback_used} queries; "
+          f"outputs in {args.output_dir}")
+    eval_env.close()
+    writer.close()
