@@ -26,7 +26,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -39,7 +39,7 @@ from samplers import SAMPLERS, SCHEDULES  # noqa: E402
 from sim_teacher import TEACHERS  # noqa: E402
 from benchmarks.reference.edits import EDITS  # noqa: E402
 
-ALGORITHMS = ("pebble", "prefppo")
+ALGORITHMS = ("pebble", "prefppo", "rime")
 IMPLEMENTATIONS = ("ours", "reference")  # reference: rll-research/BPref through benchmarks/reference/run.py
 REFERENCE_RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
 EDITS_RUNNER = ROOT / "benchmarks" / "reference" / "edits.py"
@@ -52,7 +52,7 @@ EXIT_MEANINGS = {0: "ok", 1: "a write failed", 2: "bad input", 3: "non-finite va
 @dataclass(frozen=True)
 class Grid:
     algorithms: tuple[str, ...] = ("pebble",)
-    """pebble and/or prefppo"""
+    """pebble, prefppo and/or rime"""
     implementations: tuple[str, ...] = ("ours",)
     """ours and/or reference (the reference code, set up by benchmarks/reference/setup.sh; PEBBLE, SAC, PrefPPO)"""
     env_ids: tuple[str, ...] = ("walker-walk",)
@@ -77,6 +77,8 @@ class Grid:
     """more flags for pebble.py runs only (one string, as --flags)"""
     prefppo_flags: str = ""
     """more flags for prefppo.py runs only (one string, as --flags)"""
+    rime_flags: str = ""
+    """more flags for rime.py runs only (one string, as --flags)"""
     edits: tuple[str, ...] = ()
     """the reference code's ways, applied to copies of our scripts (benchmarks/reference/edits.py)"""
     root: str = "runs/grid"
@@ -143,6 +145,23 @@ PRESETS = {
         "steps, the paper's PrefPPO preset, 3 seeds",
         Grid(algorithms=("prefppo",), teachers=("oracle",), budgets=("1000/100",), root="runs/learning-cpu-prefppo",
              flags=CPU_PREFPPO)),
+    # RIME against PEBBLE (docs/rime.md): the same runs of each, README's CPU scale, one root per mistake rate
+    "rime-mistake": (
+        "RIME and PEBBLE under the mistake teacher (eps 0.1, B-Pref's), walker-walk at the README's CPU scale, 5 seeds",
+        Grid(algorithms=("pebble", "rime"), teachers=("mistake",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
+             ground_truth=False, root="runs/rime", flags=CPU_PEBBLE + " --checkpoint-every 10000")),
+    "rime-mistake-0.3": (
+        "RIME and PEBBLE under the mistake teacher at eps 0.3 (RIME's hardest), as rime-mistake",
+        Grid(algorithms=("pebble", "rime"), teachers=("mistake",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
+             ground_truth=False, root="runs/rime-eps0.3",
+             flags=CPU_PEBBLE + " --checkpoint-every 10000 --teacher-eps-mistake 0.3")),
+    "rime-oracle": (
+        "RIME and PEBBLE with the oracle teacher (what RIME costs when no label is wrong), as rime-mistake, 3 seeds",
+        Grid(algorithms=("pebble", "rime"), teachers=("oracle",), budgets=("1000/100",), ground_truth=False,
+             root="runs/rime", flags=CPU_PEBBLE)),
+    "rime-mini-bpref": (
+        "The mini B-Pref (six teachers + ground truth, 5 seeds) for RIME and for PEBBLE's default reward inputs",
+        replace(MINI_BPREF, algorithms=("pebble", "rime"), root="runs/mini-bpref-rime")),
 }
 
 
@@ -207,7 +226,7 @@ def check(grid: Grid) -> str | None:
             parse_budget(budget)
         except ValueError as error:
             return str(error)
-    for name in ("flags", "pebble_flags", "prefppo_flags"):
+    for name in ("flags", "pebble_flags", "prefppo_flags", "rime_flags"):
         try:
             given = shlex.split(getattr(grid, name))
         except ValueError as error:

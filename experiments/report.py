@@ -3,7 +3,7 @@ bootstrap confidence intervals (rliable), a Markdown file with the tables and PN
 
     python experiments/report.py runs/mini-bpref          # writes runs/mini-bpref/report/report.md and the PNGs
 
-A run is any folder below the root with a config.json (made by pebble.py or prefppo.py, by the grid runner or by
+A run is any folder below the root with a config.json (made by pebble.py, rime.py or prefppo.py, by the grid runner or by
 hand). Normalised return of a run = its final evaluation return (Meta-World: success rate, as in the paper) / the
 mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same task.
 """
@@ -92,7 +92,7 @@ def setting_of(config: dict) -> tuple:
     """(algorithm, task, teacher, budget, sampler, schedule) of a run from its config.json; a teacher's overrides
     (--teacher-beta ... that differ from the named teacher's values) are part of its name, and ground-truth runs
     have no teacher, budget, sampler or schedule."""
-    algorithm = "prefppo" if "num_envs" in config else "pebble"
+    algorithm = "prefppo" if "num_envs" in config else "rime" if "rime_alpha" in config else "pebble"
     if config.get("implementation", "ours") != "ours":  # benchmarks/reference/run.py: its own algorithm's row
         algorithm = f"{config['implementation']}-{algorithm}"
     task = config["env_id"].removesuffix("-v3") if is_metaworld(config["env_id"]) else config["env_id"]

@@ -40,13 +40,14 @@ def test_an_edit_that_no_longer_fits_is_refused():
         edited_source("pebble.py", ["nonsense"])
 
 
-def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(tmp_path):
+@pytest.mark.parametrize("script", ["pebble.py", "rime.py"])  # rime.py: RIME's code's raw inputs, warm start too
+def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(script, tmp_path):
     out = tmp_path / "raw"
     flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "700", "--seed-steps", "200", "--unsup-steps", "200",
              "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
              "--eval-every", "700", "--hidden-dim", "32", "--batch-size", "32", "--reward-epochs", "3",
              "--reward-batch-size", "32", "--eval-episodes", "1", "--output-dir", str(out)]
-    result = subprocess.run([sys.executable, str(EDIT_SCRIPT), "raw-reward-inputs", "--", "pebble.py", *flags],
+    result = subprocess.run([sys.executable, str(EDIT_SCRIPT), "raw-reward-inputs", "--", script, *flags],
                             capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.count("reward model trained on") == 2

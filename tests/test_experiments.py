@@ -84,7 +84,7 @@ def test_grid_is_the_cross_product_plus_one_ground_truth_run_per_algorithm_task_
 
 BAD_GRIDS = [
     (["--teachers", "oracle", "sleepy"], "--teachers 'sleepy' is not one of oracle, stoc"),
-    (["--algorithms", "dqn"], "--algorithms 'dqn' is not one of pebble, prefppo"),
+    (["--algorithms", "dqn"], "--algorithms 'dqn' is not one of pebble, prefppo, rime"),
     (["--budgets", "100/200"], "--budgets '100/200' is not max_feedback[/feedback_per_session]"),
     (["--seeds", "1", "1"], "--seeds lists a value twice"),
     (["--flags=--seed 3"], "--flags sets --seed, which the grid sets itself"),
@@ -404,6 +404,18 @@ def test_a_teacher_is_named_with_the_overrides_that_change_it():
                               "num_envs": 8})[:3] == ("prefppo", "walker-walk", "myopic(eps_mistake=0.1)")
     assert report.setting_of({**base, "teacher": "stoc", "ground_truth_reward": True})[2:] == ("ground-truth", "-",
                                                                                                 "-", "-")
+    assert report.setting_of({**base, "teacher": "mistake", "teacher_eps_mistake": 0.3, "rime_alpha": 0.5})[:3] == (
+        "rime", "walker-walk", "mistake(eps_mistake=0.3)")
+
+
+def test_rime_presets_run_pebble_and_rime_with_the_same_flags_and_seeds():
+    for preset in ("rime-mistake", "rime-mistake-0.3", "rime-oracle", "rime-mini-bpref"):
+        runs = grid.expand(grid.PRESETS[preset][1])
+        pebble = {r.name.removeprefix("pebble__"): r.flags for r in runs if r.algorithm == "pebble"}
+        rime = {r.name.removeprefix("rime__"): r.flags for r in runs if r.algorithm == "rime"}
+        assert pebble and pebble == rime, preset
+    eps = grid.expand(grid.PRESETS["rime-mistake-0.3"][1])[0].flags
+    assert eps[eps.index("--teacher-eps-mistake") + 1] == "0.3"
 
 
 def test_report_on_a_folder_without_runs_is_one_error_line(tmp_path):

@@ -32,7 +32,7 @@ RUNS = {
                    "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"],
 }
 SCRIPTS = list(RUNS)
-RUNS["rime.py"] = RUNS["pebble.py"]  # pebble.py's loop and plumbing with RIME's parts: resumes, labels-from
+RUNS["rime.py"] = RUNS["pebble.py"]  # pebble.py's loop and plumbing with RIME's parts: SIGKILL, labels-from
 WITH_RIME = SCRIPTS + ["rime.py"]
 
 
@@ -79,7 +79,7 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(script, tmp_path, unin
     assert list((out / "labels").glob("before_resume_at_step_*/session_0001.npz"))
 
 
-@pytest.mark.parametrize("script", WITH_RIME)
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_sigterm_saves_a_checkpoint_and_the_resumed_run_matches(script, tmp_path, uninterrupted):
     out = tmp_path / "run"
     process = start_script(script, out, *RUNS[script], "--checkpoint-every", "0")

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 # name -> {script: [(old text, new text), ...]}; docs/differences.md gives each one's measured effect
 EDITS = {
-    # The reference PEBBLE's reward model sees raw observations (differences.md 17): no statistics of D
+    # The reference PEBBLE's (and RIME's code's) reward model sees raw observations (differences.md 17, 22)
     "raw-reward-inputs": {
         "pebble.py": [(
             "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
@@ -27,6 +27,9 @@ EDITS = {
         "prefppo.py": [(
             "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
             "")],
+        "rime.py": [(
+            "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
+            ""), ("        reward_model.set_input_stats(buffer.obs[: buffer.size])\n", "        pass\n")],
     },
     # The reference PrefPPO's SB3 ends an episode at its time limit as at a termination (differences.md 16)
     "no-bootstrap-time-limits": {
