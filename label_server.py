@@ -9,6 +9,7 @@ import json
 import math
 import os
 import re
+import socket
 import sys
 import threading
 import urllib.parse
@@ -40,6 +41,7 @@ JPEG_QUALITY = 90
 SESSION_FILE = re.compile(r"session_(\d{4,})\.npz")
 CLIP_URL = re.compile(r"/clips/(\d{1,6})/(\d{1,9})/([01])\.jpg")
 MAX_BODY = 10_000  # bytes of a POST's JSON
+METHODS = ("GET", "POST")  # every other method: 405
 
 
 class RequestError(Exception):
@@ -130,8 +132,16 @@ class LabelServer(http.server.ThreadingHTTPServer):
         self.renders = {}  # clip path -> Future of its rendering
         self.renders_lock = threading.Lock()
         self.env = None  # made and used on the render thread only
+        self.render_error = None  # the first failure to render: kept (OpenGL is not tried twice)
         self.closed = False
+        # the Host header must name this server (a page elsewhere that rebinds a name of its own to
+        # 127.0.0.1 sends its own name): 127.0.0.1, localhost, [::1], or what --host says
+        self.hosts = {"127.0.0.1", "localhost", "[::1]", f"[{host}]" if ":" in host else host}
+        self.address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
         super().__init__((host, port), Handler)
+        self.url_file = sim_teacher.page_url_path(run_dir)
+        os.makedirs(os.path.dirname(self.url_file), exist_ok=True)
+        sim_teacher.save_file(self.url_file, self.url.encode())
 
     def handle_error(self, request, client_address):
         if not isinstance(sys.exc_info()[1], ConnectionError):  # a page closed mid-reply: quiet
@@ -139,14 +149,22 @@ class LabelServer(http.server.ThreadingHTTPServer):
 
     @property
     def url(self) -> str:
+        """The page's address for a browser on this machine (for 0.0.0.0 or ::, its loopback)."""
         host, port = self.server_address[:2]
-        return f"http://{host}:{port}/"
+        host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+        return f"http://[{host}]:{port}/" if ":" in host else f"http://{host}:{port}/"
 
     def close(self):
         """Stops serving and rendering (a second call does nothing)."""
         if self.closed:
             return
         self.closed = True
+        try:
+            with open(self.url_file) as f:
+                if f.read() == self.url:  # not another server's, started since
+                    os.remove(self.url_file)
+        except OSError:
+            pass
         self.shutdown()
         self.server_close()
         if self.env is not None:
@@ -259,6 +277,8 @@ class LabelServer(http.server.ThreadingHTTPServer):
         clips_dir = self.session_path(number, "_clips")
         path = os.path.join(clips_dir, f"{query:04d}_{side}_{digest.hexdigest()[:16]}.jpg")
         with self.renders_lock:
+            if self.render_error is not None:
+                raise RequestError(500, self.render_error)
             if not os.path.exists(path) and path not in self.renders:
                 self.renders[path] = self.renderer.submit(self.render_clip, path, seed, start,
                                                           actions)
@@ -269,11 +289,14 @@ class LabelServer(http.server.ThreadingHTTPServer):
             except concurrent.futures.CancelledError:
                 raise RequestError(503, "the label server is stopping") from None
             except Exception as error:
-                with self.renders_lock:  # a later request tries again
-                    self.renders.pop(path, None)
+                # kept: a second try of a failed OpenGL set-up can abort the whole process
                 message = f"{type(error).__name__}: {error}".splitlines()[0]
-                raise RequestError(500, f"could not render the clip: {message} (no display? set "
-                                   "MUJOCO_GL=egl or osmesa: docs/human_teacher.md)") from None
+                with self.renders_lock:
+                    self.renders.pop(path, None)
+                    self.render_error = self.render_error or (
+                        f"could not render the clip: {message} (no display? restart "
+                        "label_server.py with MUJOCO_GL=egl or osmesa: docs/human_teacher.md)")
+                    raise RequestError(500, self.render_error) from None
         return path
 
     def render_clip(self, path: str, seed: int, start: int, actions: np.ndarray):
@@ -289,7 +312,35 @@ class Handler(http.server.BaseHTTPRequestHandler):
 
     server: LabelServer
 
+    def allowed(self) -> bool:
+        """The Host header names this server, else a 403 goes out."""
+        host = self.headers.get("Host", "")
+        name = host.rsplit(":", 1)[0] if re.fullmatch(r".*:\d+", host) else host
+        if name.lower() in self.server.hosts:
+            return True
+        self.send_json(403, {"error": f"Host {host!r} is not this server's address (open "
+                                      f"{self.server.url})"})
+        return False
+
+    def send_error(self, code, message=None, explain=None):
+        """Every refusal as JSON: a method other than GET and POST (405), a bad request line..."""
+        if code == 501 or self.command not in METHODS + (None,):
+            code, message = 405, f"method {self.command} is not allowed here (GET and POST only)"
+        self.close_connection = True
+        body = json.dumps({"error": message or http.HTTPStatus(code).phrase}).encode()
+        self.send_response(code, message)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Connection", "close")
+        if code == 405:
+            self.send_header("Allow", ", ".join(METHODS))
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
     def do_GET(self):
+        if not self.allowed():
+            return
         path = urllib.parse.urlsplit(self.path).path
         clip = CLIP_URL.fullmatch(path)
         if path == "/":
@@ -303,6 +354,8 @@ class Handler(http.server.BaseHTTPRequestHandler):
             self.send_json(404, {"error": f"not found: {path}"})
 
     def do_POST(self):
+        if not self.allowed():
+            return
         path = urllib.parse.urlsplit(self.path).path
         actions = {"/api/answer": self.server.answer, "/api/undo": self.server.undo}
         if path not in actions:
@@ -316,16 +369,24 @@ class Handler(http.server.BaseHTTPRequestHandler):
         if self.headers.get_content_type() != "application/json":
             raise RequestError(415, "the request's body must be JSON (Content-Type: "
                                "application/json)")
+        if "Transfer-Encoding" in self.headers:
+            self.close_connection = True  # its body is not read
+            raise RequestError(411, "send the body whole with a Content-Length (no "
+                               f"Transfer-Encoding: {self.headers['Transfer-Encoding']})")
         length = self.headers.get("Content-Length", "")
         if not length.isdigit() or int(length) > MAX_BODY:
+            self.close_connection = True
             raise RequestError(413, f"the request's body must have a length of at most {MAX_BODY}"
                                " bytes")
         try:
             request = json.loads(self.rfile.read(int(length)))
-        except (ValueError, UnicodeDecodeError):
+        except (ValueError, UnicodeDecodeError, RecursionError):
             raise RequestError(400, "the request's body is not valid JSON") from None
         if not isinstance(request, dict):
             raise RequestError(400, "the request's body must be a JSON object")
+        if any(isinstance(value, (dict, list)) for value in request.values()):
+            raise RequestError(400, "the request's body must be a flat JSON object (no value is "
+                               "an object or a list)")
         return request
 
     def respond(self, action):

@@ -22,6 +22,7 @@ import json
 import math
 import os
 import signal
+import sys
 import time
 import zipfile
 from dataclasses import dataclass, field
@@ -268,6 +269,11 @@ def queries_path(run_dir: str, session: int, suffix: str = ".npz") -> str:
     return os.path.join(run_dir, "queries", f"session_{session:04d}{suffix}")
 
 
+def page_url_path(run_dir: str) -> str:
+    """Where label_server.py writes the address of its page while it serves the run."""
+    return os.path.join(run_dir, "queries", "page_url.txt")
+
+
 def load_queries(path: str) -> dict:
     """A session's queries file as arrays; ValueError when its sides do not fit together."""
     with np.load(path) as data:
@@ -330,12 +336,23 @@ class HumanTeacher:
                                                        ((0, longest - len(episode[1])), (0, 0)))
                                                 for episode in pool])
         save_npz(queries_path(self.run_dir, self.session), **saved)
-        print(f"step {queries['step']}: {n} queries wait for a person: python label_server.py "
-              f"{self.run_dir} and open http://127.0.0.1:8000 (stopping the run now loses nothing: "
-              "--resume asks this session again, with the answers given)", flush=True)
-        # While it waits, SIGTERM or SIGINT end the run at once (its checkpoint is written)
-        handlers = {signum: signal.signal(signum, signal.SIG_DFL)
-                    for signum in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            with open(page_url_path(self.run_dir)) as f:
+                page = f"label_server.py serves them at {f.read()}"
+        except OSError:
+            page = (f"python label_server.py {self.run_dir} serves them (it prints its page's "
+                    "address)")
+        print(f"step {queries['step']}: {n} queries wait for a person: {page}; stopping the run "
+              "now loses nothing (--resume asks this session again, with the answers given)",
+              flush=True)
+
+        def stop(signum, frame):  # the run wrote its checkpoint before the session
+            print(f"{signal.Signals(signum).name}: checkpoint saved before the session at step "
+                  f"{queries['step']}; continue with --resume {self.run_dir}", flush=True)
+            sys.exit(128 + signum)
+
+        # While it waits, SIGTERM or SIGINT end the run at once
+        handlers = {signum: signal.signal(signum, stop) for signum in (signal.SIGTERM, signal.SIGINT)}
         answers = {}
         while len(answers) < n:
             time.sleep(1)

@@ -101,10 +101,12 @@ def test_a_run_stopped_while_it_waits_resumes_the_session_with_the_answers_given
         answer(out, 0, {"0": "right", "1": "left"})  # half of them, then the person stops the run
         time.sleep(1.5)
         process.send_signal(signal.SIGTERM)
-        process.communicate(timeout=60)
+        stdout, stderr = process.communicate(timeout=60)
     finally:
         process.kill()
-    assert process.returncode != 0
+    assert process.returncode == 128 + signal.SIGTERM and "Traceback" not in stderr
+    assert stdout.splitlines()[-1] == f"SIGTERM: checkpoint saved before the session at step 301; continue with " \
+                                      f"--resume {out}"
     saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["progress"]["global_step"] == 300 and saved["progress"]["sessions_done"] == 0
     (out / "queries" / "session_0000.npz").unlink()
@@ -171,3 +173,21 @@ def test_a_person_labels_a_short_run_in_a_real_browser(tmp_path, browser):
     np.testing.assert_array_equal(labels[0]["y"][labels[0]["keep"]], [0.0, 0.5])
     np.testing.assert_array_equal(labels[1]["keep"], [True, True, True])
     np.testing.assert_array_equal(labels[1]["y"], [1.0, 1.0, 0.0])
+
+
+def test_the_run_names_the_page_s_real_address_when_label_server_py_serves_it(tmp_path, capsys):
+    import sim_teacher
+
+    episodes = [(np.zeros((20, 3)), np.zeros((20, 1)), np.zeros(20), 7)]
+    teacher = sim_teacher.make_teacher("human", 0, str(tmp_path), episodes)
+    (tmp_path / "queries").mkdir()
+    queries = {"step": 500, "episode0": np.array([0]), "start0": np.array([2]), "episode1": np.array([0]),
+               "start1": np.array([5])}
+    for page, expected in ((None, f"python label_server.py {tmp_path} serves them (it prints its page's address)"),
+                           ("http://[::1]:8123/", "label_server.py serves them at http://[::1]:8123/")):
+        if page:
+            (tmp_path / "queries" / "page_url.txt").write_text(page)
+        answer(tmp_path, teacher.session, {"0": "left"})
+        y, keep = teacher.label(np.zeros((1, 5)), np.zeros((1, 5)), queries)
+        assert y.tolist() == [0.0] and keep.tolist() == [True]
+        assert expected in capsys.readouterr().out

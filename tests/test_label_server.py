@@ -9,8 +9,10 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -290,6 +292,135 @@ def test_without_a_config_the_server_says_which_run_to_give(tmp_path):
     assert result.returncode == 2 and result.stderr == (
         f"error: {tmp_path / 'nowhere' / 'config.json'} does not exist: give the --output-dir of "
         "a run started with --teacher human\n")
+
+
+def raw_request(server, lines: list[str], body: bytes = b"") -> tuple[int, dict, dict]:
+    """(status, headers, JSON body) of a request sent byte for byte."""
+    import socket
+
+    with socket.create_connection(server.server_address[:2], timeout=60) as connection:
+        connection.sendall("\r\n".join(lines + ["", ""]).encode() + body)
+        reply = b""
+        while chunk := connection.recv(65536):
+            reply += chunk
+    head, _, payload = reply.partition(b"\r\n\r\n")
+    status_line, *header_lines = head.decode().split("\r\n")
+    headers = dict(line.split(": ", 1) for line in header_lines)
+    return int(status_line.split()[1]), headers, json.loads(payload) if payload else {}
+
+
+@pytest.mark.parametrize("host", ["evil.example", "evil.example:8000", "127.0.0.1.evil.example", ""])
+def test_a_host_header_that_does_not_name_the_server_is_a_403(run, host):
+    run_dir, server, _ = run
+    port = server.server_address[1]
+    body = json.dumps({"session": 0, "id": 0, "label": "left"}).encode()
+    headers = [f"Host: {host}"] if host else []
+    status, _, reply = raw_request(server, ["POST /api/answer HTTP/1.1", *headers, "Content-Type: application/json",
+                                            f"Content-Length: {len(body)}", "Connection: close"], body)
+    assert status == 403 and "is not this server's address" in reply["error"]
+    assert not (run_dir / "queries" / "session_0000_answers.json").exists()
+    for good in (f"127.0.0.1:{port}", f"localhost:{port}", "LOCALHOST", "127.0.0.1"):
+        status, _, _ = raw_request(server, ["GET /api/state HTTP/1.1", f"Host: {good}", "Connection: close"])
+        assert status == 200, good
+
+
+@pytest.mark.parametrize("method", ["HEAD", "PUT", "DELETE", "PATCH", "OPTIONS", "TRACE", "FOO"])
+def test_a_method_other_than_get_and_post_is_a_json_405(run, method):
+    status, headers, reply = raw_request(run[1], [f"{method} /api/state HTTP/1.1", "Host: 127.0.0.1",
+                                                  "Connection: close"])
+    assert status == 405 and headers["Allow"] == "GET, POST" and headers["Content-Type"] == "application/json"
+    if method != "HEAD":  # a HEAD reply has no body
+        assert reply == {"error": f"method {method} is not allowed here (GET and POST only)"}
+
+
+def test_a_chunked_body_is_refused_for_what_it_is(run):
+    run_dir, server, _ = run
+    body = json.dumps({"session": 0, "id": 0, "label": "left"}).encode()
+    chunked = f"{len(body):x}\r\n".encode() + body + b"\r\n0\r\n\r\n"
+    status, _, reply = raw_request(server, ["POST /api/answer HTTP/1.1", "Host: 127.0.0.1",
+                                            "Content-Type: application/json", "Transfer-Encoding: chunked",
+                                            "Connection: close"], chunked)
+    assert status == 411 and "Content-Length" in reply["error"] and "chunked" in reply["error"]
+    assert not (run_dir / "queries" / "session_0000_answers.json").exists()
+
+
+@pytest.mark.parametrize("body", [b"[" * 4000 + b"]" * 4000, b'{"session": ' + b"[" * 3000 + b"]" * 3000 + b"}",
+                                  b'{"session": 0, "id": 0, "label": {"a": "left"}}',
+                                  b'{"session": [0], "id": 0, "label": "left"}'])
+def test_a_nested_body_is_a_400_not_a_crash(run, body):
+    run_dir, server, _ = run
+    status, reply = request(server, "POST", "/api/answer", body)
+    assert status == 400 and ("not valid JSON" in reply["error"] or "flat JSON object" in reply["error"]
+                              or "must be a JSON object" in reply["error"])
+    assert request(server, "GET", "/api/state")[0] == 200  # still serving
+
+
+def test_the_server_writes_its_address_in_the_run_while_it_serves(tmp_path):
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "0.0.0.0", 0)
+    try:
+        port = server.server_address[1]
+        assert server.url == f"http://127.0.0.1:{port}/"  # an address a browser here can open
+        assert (run_dir / "queries" / "page_url.txt").read_text() == server.url
+    finally:
+        server.close()
+    assert not (run_dir / "queries" / "page_url.txt").exists()
+
+
+def test_an_ipv6_host_is_served():
+    import socket
+
+    if not socket.has_ipv6:
+        pytest.skip("no IPv6 on this machine")
+    try:
+        socket.socket(socket.AF_INET6).bind(("::1", 0))
+    except OSError:
+        pytest.skip("no IPv6 loopback on this machine")
+    run_dir = Path(tempfile.mkdtemp()) / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "::1", 0)
+    try:
+        port = server.server_address[1]
+        assert server.url == f"http://[::1]:{port}/"
+        connection = http.client.HTTPConnection("::1", port, timeout=60)
+        connection.request("GET", "/api/state", headers={"Host": f"[::1]:{port}"})
+        response = connection.getresponse()
+        assert response.status == 200 and json.loads(response.read())["session"] == 0
+    finally:
+        server.close()
+
+
+def test_a_rendering_failure_answers_every_clip_request_and_the_server_keeps_serving(tmp_path):
+    """Without an OpenGL backend (MUJOCO_GL=glfw and no display), a DMC task's clip cannot render: each request gets
+    the error with its hint, and the server answers the next requests (a second OpenGL set-up used to abort it)."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.json").write_text(json.dumps({"env_id": "walker-walk", "segment_len": 5, "seed": 1}))
+    arrays = {"step": np.int64(1000)}
+    for side in (0, 1):
+        arrays.update({f"seed{side}": np.array([1, 2]), f"start{side}": np.array([0, 3]),
+                       f"actions{side}": np.zeros((2, 8, 6), np.float32)})
+    (run_dir / "queries").mkdir()
+    np.savez(run_dir / "queries" / "session_0000.npz", **arrays)
+    env = {key: value for key, value in ENV.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    process = subprocess.Popen([sys.executable, "label_server.py", str(run_dir), "--port", "0"], cwd=ROOT,
+                               env=env | {"MUJOCO_GL": "glfw"}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        while not (run_dir / "queries" / "page_url.txt").exists():
+            assert process.poll() is None and time.time() < deadline, process.communicate()
+            time.sleep(0.2)
+        url = (run_dir / "queries" / "page_url.txt").read_text()
+        host, port = url.removeprefix("http://").rstrip("/").rsplit(":", 1)
+        server = type("Address", (), {"server_address": (host, int(port))})
+        for path in ("/clips/0/0/0.jpg", "/clips/0/1/1.jpg", "/clips/0/0/0.jpg"):
+            status, reply = request(server, "GET", path)
+            assert status == 500 and "could not render the clip" in reply["error"] and "MUJOCO_GL=egl" in reply["error"]
+        assert request(server, "GET", "/api/state")[0] == 200 and process.poll() is None
+    finally:
+        process.terminate()
+        process.communicate(timeout=60)
 
 
 # A real browser: headless Chromium (Debian's chromium and chromium-driver) driven by selenium
