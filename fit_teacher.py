@@ -136,8 +136,8 @@ def rational_loglik(wrong, ties, n: int, eps=None):
     probability eps (an exact tie is a coin), from the counts of labels against the returns and of
     exact ties. eps None: the maximum over eps (eps = wrong / decided). Arrays give arrays."""
     decided = n - ties
-    if eps is None:
-        eps = wrong / np.maximum(decided, 1)
+    if eps is None:  # the MLE within SimTeacher's range [0, 0.5]
+        eps = np.minimum(wrong / np.maximum(decided, 1), 0.5)
     with np.errstate(divide="ignore", invalid="ignore"):  # 0 log 0 = 0
         return (np.where(wrong > 0, wrong * np.log(eps), 0.0) + ties * math.log(0.5)
                 + np.where(decided > wrong, (decided - wrong) * np.log1p(-eps), 0.0))
@@ -229,12 +229,13 @@ def fit_choice(diff: np.ndarray, sign: np.ndarray, level: float) -> dict:
             loglik = rational_loglik(wrong, ties, n)
             tied = np.flatnonzero(loglik >= loglik.max() - 1e-9)  # an interval, when deterministic
             i = tied[-1] if DENSE_GAMMAS[tied[-1]] == 1.0 else tied[len(tied) // 2]  # 1, or middle
-            eps = wrong[i] / max(n - ties[i], 1)
+            eps = min(wrong[i] / max(n - ties[i], 1), 0.5)
             rational = (float(loglik[i]), [math.inf, float(DENSE_GAMMAS[i]), eps])
         elif fixed == 1:  # beta = inf at this gamma
             agree = sign * advantages(diff, np.array([value]))[0]
             w, t = (agree < 0).sum(), (agree == 0).sum()
-            rational = (float(rational_loglik(w, t, n)), [math.inf, value, w / max(n - t, 1)])
+            eps = min(w / max(n - t, 1), 0.5)
+            rational = (float(rational_loglik(w, t, n)), [math.inf, value, eps])
         elif fixed == 2:  # beta = inf at this eps
             loglik = rational_loglik(wrong, ties, n, value)
             i = loglik.argmax()
@@ -359,12 +360,27 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
     strict = keep & (y != 0.5)
     if strict.sum() < MIN_STRICT:
         raise ValueError(f"{strict.sum()} strict labels (0 or 1): the fit needs {MIN_STRICT}")
+    if len(np.unique(y[strict])) == 1:
+        side = "right (1)" if y[strict][0] == 1 else "left (0)"
+        raise ValueError(f"all {strict.sum()} strict labels say {side}: a teacher who answers one "
+                         "side whatever the segments is no B-Pref teacher, and the fit needs both "
+                         "answers")
+    margin = np.where(y[strict] == 1.0, 1.0, -1.0) * (rewards1 - rewards0)[strict].sum(1)
+    if (margin < 0).sum() > (margin > 0).sum():
+        raise ValueError(f"{(margin < 0).sum()} of {(margin != 0).sum()} strict labels run against "
+                         "the returns: the sides may be swapped (left for right); a B-Pref "
+                         "teacher's mistakes are at most half")
     if threshold_scale is not None:
         threshold_scale = np.broadcast_to(np.asarray(threshold_scale, np.float64), (n,))
         if not np.isfinite(threshold_scale).all():
             raise ValueError("threshold_scale must be finite")
 
     result = fit_choice((rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0), level)
+    # gamma whose interval is its whole range: the labels do not tell; 1 is the simplest teacher
+    low, high = result["ci"]["gamma"]
+    result["gamma_unknown"] = low <= GAMMAS[0] and high >= 1
+    if result["gamma_unknown"]:
+        result["gamma"] = 1.0
     # The thresholds in eps units (each session's delta = eps * its scale) when every session has
     # its scale (eps <= 1, as SimTeacher's), else one delta for all sessions in return units.
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
@@ -380,8 +396,10 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
         result[f"delta_{name}"] = None if scaled else part["estimate"]
         result["ci"][f"eps_{name}" if scaled else f"delta_{name}"] = part["ci"]
         result[f"{name}_disagreements"] = part["disagreements"]
+    nonpositive = 0 if threshold_scale is None else int((threshold_scale <= 0).sum())
     return result | {"n_pairs": n, "n_strict": int(strict.sum()), "n_skipped": int((~keep).sum()),
-                     "n_equal": int((keep & (y == 0.5)).sum()), "level": level}
+                     "n_equal": int((keep & (y == 0.5)).sum()), "level": level,
+                     "nonpositive_scales": nonpositive}
 
 
 def teacher_overrides(result: dict) -> dict:
@@ -417,6 +435,15 @@ def report(result: dict, truth: dict | None = None) -> str:
         if result[f"{name}_disagreements"]:
             lines.append(f"note: no {name} threshold explains every decision: "
                          f"{result[f'{name}_disagreements']} go the other way (a lapse rate fits)")
+    if result.get("gamma_unknown"):
+        lines.append("note: gamma's interval is its whole range: the labels do not tell it "
+                     "(segments whose rewards hardly change along them), so gamma is 1, the "
+                     "simplest teacher")
+    if result.get("nonpositive_scales"):
+        lines.append(f"warning: {result['nonpositive_scales']} pairs come from sessions whose "
+                     "threshold_scale (H / T x R_avg) is 0 or below: a teacher's skip and equal "
+                     "thresholds are 0 there whatever its eps, so they tell nothing of eps_skip, "
+                     "eps_equal")
     missing = [name for name in ("skip", "equal") if result[f"eps_{name}"] is None]
     if missing:
         lines.append("note: the label files lack threshold_scale: delta_"
@@ -448,6 +475,9 @@ def run_teacher(path: str) -> dict | None:
 def main():
     args = tyro.cli(Args)
     try:
+        if args.simulate and not 1 <= args.sessions <= args.pairs:
+            raise ValueError(f"--simulate needs 1 <= --sessions <= --pairs, got {args.sessions} "
+                             f"sessions of {args.pairs} pairs")
         if args.simulate:
             teacher = SimTeacher(args.teacher_beta, args.teacher_gamma, args.teacher_eps_mistake,
                                  args.teacher_eps_skip, args.teacher_eps_equal, seed=args.seed)

@@ -217,6 +217,11 @@ def load_labels(path: str) -> list[dict]:
             raise ValueError(f"{file}: not a readable .npz ({error})") from None
         if missing := [key for key in LABEL_KEYS if key not in session]:
             raise ValueError(f"{file}: no {', '.join(missing)} in it")
+        for key in LABEL_KEYS:
+            value = session[key]
+            if not (isinstance(value, np.ndarray) and (value.dtype == bool
+                                                       or np.issubdtype(value.dtype, np.number))):
+                raise ValueError(f"{file}: its {key} is not an array of numbers")
         shapes = [session[key].shape for key in LABEL_KEYS]
         if not (len(shapes[0]) == 2 and shapes[0] == shapes[1]
                 and shapes[2] == shapes[3] == shapes[0][:1]):

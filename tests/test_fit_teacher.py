@@ -237,3 +237,78 @@ def test_the_api_rejects_bad_arrays():
         fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], threshold_scale=math.nan)
     with pytest.raises(ValueError, match="level"):
         fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], level=1.5)
+
+
+# ---------------------------------------------------------------- labels no B-Pref teacher gives, and the report's notes
+
+
+def simulated(directory, **teacher) -> dict:
+    simulate(str(directory), SimTeacher(**teacher, seed=0), 300, 3, seed=0)
+    return load_labels(str(directory))
+
+
+def test_identical_answers_are_an_error_not_a_teacher(tmp_path):
+    data = simulated(tmp_path)
+    y = np.where(data["keep"], 0.0, np.nan)  # "left" for every pair
+    with pytest.raises(ValueError, match=re.escape("strict labels say left (0): a teacher who answers one side")):
+        fit(data["rewards0"], data["rewards1"], y, data["keep"], data["threshold_scale"])
+
+
+def test_labels_against_the_returns_say_the_sides_may_be_swapped(tmp_path):
+    data = simulated(tmp_path, eps_mistake=0.2)
+    swapped = np.where(data["y"] == 0.5, 0.5, 1 - data["y"])
+    with pytest.raises(ValueError, match="run against the returns: the sides may be swapped"):
+        fit(data["rewards0"], data["rewards1"], swapped, data["keep"], data["threshold_scale"])
+
+
+def test_eps_mistake_stays_within_half_in_every_branch(tmp_path):
+    data = simulated(tmp_path)
+    strict = data["keep"] & (data["y"] != 0.5)
+    diff = (data["rewards1"] - data["rewards0"])[strict]
+    sign = np.sign(diff.sum(1))
+    sign[: int(0.6 * len(sign))] *= -1  # 60% against the returns: the rational branch's wrong / decided = 0.6
+    result = fit_teacher.fit_choice(diff, sign, 0.95)
+    assert result["eps_mistake"] <= 0.5 and result["ci"]["eps_mistake"][1] <= 0.5
+    assert fit_teacher.rational_loglik(np.array([60]), np.array([0]), 100) == pytest.approx(100 * math.log(0.5))
+
+
+def test_gamma_that_the_labels_cannot_tell_is_printed_as_one_with_a_note():
+    rng = np.random.default_rng(0)
+    levels = rng.uniform(0, 1, (200, 2, 1))
+    rewards = np.repeat(levels, 20, axis=2)  # constant along each segment: a rational teacher's gamma is invisible
+    y = (rewards[:, 1].sum(1) > rewards[:, 0].sum(1)).astype(float)
+    result = fit(rewards[:, 0], rewards[:, 1], y, np.ones(200, bool), 0.5)
+    assert result["ci"]["gamma"][0] <= fit_teacher.GAMMAS[0] and result["ci"]["gamma"][1] == 1.0
+    assert result["gamma"] == 1.0 and result["gamma_unknown"]
+    text = fit_teacher.report(result)
+    assert "gamma's interval is its whole range" in text and "--teacher-gamma 1 " in text + " "
+
+
+def test_a_nonpositive_threshold_scale_is_warned_about(tmp_path):
+    data = simulated(tmp_path)
+    scale = data["threshold_scale"].copy()
+    scale[:100] = 0.0
+    result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], scale)
+    assert result["nonpositive_scales"] == 100
+    assert "warning: 100 pairs come from sessions whose threshold_scale" in fit_teacher.report(result)
+
+
+@pytest.mark.parametrize("member", [b"not an array", None])
+def test_a_label_file_whose_members_are_not_arrays_is_one_line(tmp_path, member):
+    import zipfile
+
+    (tmp_path / "labels").mkdir()
+    with zipfile.ZipFile(tmp_path / "labels" / "session_0000.npz", "w") as archive:
+        for key in ("rewards0", "rewards1", "y", "keep"):
+            archive.writestr(f"{key}.npy" if member else key, member or b"hello")
+    result = subprocess.run([sys.executable, "fit_teacher.py", "--labels", str(tmp_path)], capture_output=True,
+                            text=True, cwd=ROOT, timeout=120)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert "its rewards0 is not an array of numbers" in result.stderr
+
+
+def test_simulating_no_pairs_is_one_line_and_no_warning(tmp_path):
+    result = subprocess.run([sys.executable, "fit_teacher.py", "--labels", str(tmp_path / "x"), "--simulate",
+                             "--pairs", "0"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert result.returncode == 2
+    assert result.stderr == "error: --simulate needs 1 <= --sessions <= --pairs, got 10 sessions of 0 pairs\n"
