@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import tyro
 from scipy.optimize import minimize
-from scipy.special import log_expit
+from scipy.special import expit, log_expit
 from scipy.stats import chi2
 
 import sim_teacher
@@ -44,6 +44,8 @@ EPSILONS = np.concatenate([[0.0], np.geomspace(1e-3, 0.05, 8, endpoint=False),
                            np.linspace(0.05, 0.5, 19)])
 N_BETAS = 48  # grid of beta: 0, N_BETAS values log-spaced over the relevant range, inf
 BISECTIONS = 8  # steps locating an end of an interval between two grid values
+CHECK_BINS = 10  # bins of the return difference in the goodness-of-fit check
+CHECK_LEVEL = 0.01  # p-value below which the fitted teacher does not describe the labels
 TEACHER = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher, --teacher-*
 
 
@@ -327,6 +329,47 @@ def fit_threshold(values: np.ndarray, scales: np.ndarray, hits: np.ndarray, uppe
 
 
 # -------------------------------------------------------------------------------------------------
+# Goodness of fit
+# -------------------------------------------------------------------------------------------------
+
+
+def check_fit(result: dict, diff: np.ndarray, sign: np.ndarray, bins: int = CHECK_BINS) -> dict:
+    """Does the fitted choice describe the strict labels? Observed against predicted share of
+    "right" (y = 1) in `bins` equal-count bins of the fitted myopic return difference A1 - A0, the
+    G statistic over the bins (the likelihood ratio against each bin's own share) and its p-value
+    from chi2 with bins - 2 degrees of freedom (as Hosmer and Lemeshow's test), and a verdict."""
+    advantage = advantages(diff, np.array([result["gamma"]]))[0]
+    if math.isinf(result["beta"]):
+        q = 0.5 * (1 + np.sign(advantage))
+    else:
+        q = expit(result["beta"] * advantage)
+    predicted = result["eps_mistake"] + (1 - 2 * result["eps_mistake"]) * q
+    groups = np.array_split(np.argsort(advantage, kind="stable"), min(bins, len(sign)))
+    rows, statistic = [], 0.0
+    for group in groups:
+        n, observed = len(group), float((sign[group] > 0).sum())
+        expected = float(np.clip(predicted[group].sum(), 1e-9, n - 1e-9))
+        for o, e in ((observed, expected), (n - observed, n - expected)):
+            statistic += 2 * o * math.log(o / e) if o > 0 else 0.0
+        rows.append({"low": float(advantage[group].min()), "high": float(advantage[group].max()),
+                     "n": n, "observed": observed / n, "predicted": expected / n})
+    p_value = float(chi2.sf(statistic, max(len(groups) - 2, 1)))
+    below = sum(row["observed"] < row["predicted"] for row in rows)
+    if p_value >= CHECK_LEVEL:
+        verdict = ("the fitted teacher describes these labels: no bin's share of \"right\" is "
+                   "further from its prediction than chance allows")
+    elif below >= 0.8 * len(rows) or below <= 0.2 * len(rows):
+        side = "left (0)" if below >= 0.8 * len(rows) else "right (1)"
+        verdict = (f"the fitted teacher does NOT describe these labels: they lean {side} in "
+                   f"{max(below, len(rows) - below)} of {len(rows)} bins, whatever the segments (a "
+                   "side bias, which B-Pref's teachers do not have)")
+    else:
+        verdict = ("the fitted teacher does NOT describe these labels: their share of \"right\" "
+                   "follows the return difference otherwise than any B-Pref teacher's")
+    return {"bins": rows, "statistic": statistic, "p_value": p_value, "verdict": verdict}
+
+
+# -------------------------------------------------------------------------------------------------
 # The fit
 # -------------------------------------------------------------------------------------------------
 
@@ -381,6 +424,8 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
     result["gamma_unknown"] = low <= GAMMAS[0] and high >= 1
     if result["gamma_unknown"]:
         result["gamma"] = 1.0
+    result["check"] = check_fit(result, (rewards1 - rewards0)[strict],
+                                np.where(y[strict] == 1.0, 1.0, -1.0))
     # The thresholds in eps units (each session's delta = eps * its scale) when every session has
     # its scale (eps <= 1, as SimTeacher's), else one delta for all sessions in return units.
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
@@ -449,6 +494,14 @@ def report(result: dict, truth: dict | None = None) -> str:
         lines.append("note: the label files lack threshold_scale: delta_"
                      + " and delta_".join(missing) + " are in return units, and --teacher-eps-"
                      + " and --teacher-eps-".join(missing) + " cannot be given")
+    if "check" in result:
+        check = result["check"]
+        lines += ["", f"goodness of fit (strict labels in {len(check['bins'])} bins of the fitted "
+                  f"A1 - A0): G = {check['statistic']:.1f}, p = {check['p_value']:.3g}",
+                  "  A1 - A0 from .. to      pairs  share right  predicted"]
+        lines += [f"  {row['low']:>9.3g} .. {row['high']:<9.3g} {row['n']:>6}  "
+                  f"{row['observed']:>11.2f}  {row['predicted']:>9.2f}" for row in check["bins"]]
+        lines.append(f"verdict: {check['verdict']}")
     lines += ["", "simulate this teacher with pebble.py or prefppo.py (on the same task: beta is "
               "per unit of return):", f"  {teacher_flags(result)}"]
     return "\n".join(lines)

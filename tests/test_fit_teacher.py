@@ -312,3 +312,29 @@ def test_simulating_no_pairs_is_one_line_and_no_warning(tmp_path):
                              "--pairs", "0"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert result.returncode == 2
     assert result.stderr == "error: --simulate needs 1 <= --sessions <= --pairs, got 10 sessions of 0 pairs\n"
+
+
+@pytest.mark.parametrize("name", list(TEACHERS))
+def test_the_goodness_of_fit_check_passes_labels_of_each_b_pref_teacher(tmp_path, name):
+    # 1000 pairs, seed 3; the check's false alarm rate is 1% per teacher by construction
+    simulate(str(tmp_path), make_teacher(name, seed=3), 1000, 10, seed=3)
+    data = load_labels(str(tmp_path))
+    result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], data["threshold_scale"])
+    check = result["check"]
+    assert check["p_value"] >= fit_teacher.CHECK_LEVEL and check["verdict"].startswith("the fitted teacher describes")
+    assert sum(row["n"] for row in check["bins"]) == result["n_strict"]
+
+
+@pytest.mark.parametrize("side", [0.0, 1.0])
+def test_the_check_names_a_side_bias_that_the_fit_cannot(tmp_path, side):
+    # A stochastic teacher whose strict answers are replaced by one side 60% of the time (about 80% "left" in all)
+    simulate(str(tmp_path), SimTeacher(beta=1.0, seed=0), 1000, 10, seed=0)
+    data = load_labels(str(tmp_path))
+    y = data["y"].copy()
+    strict = data["keep"] & (y != 0.5)
+    y[strict & (np.random.default_rng(1).random(len(y)) < 0.6)] = side
+    result = fit(data["rewards0"], data["rewards1"], y, data["keep"], data["threshold_scale"])
+    check = result["check"]
+    assert check["p_value"] < 1e-6
+    assert f"they lean {'left (0)' if side == 0 else 'right (1)'} in 10 of 10 bins" in check["verdict"]
+    assert "verdict: the fitted teacher does NOT describe these labels" in fit_teacher.report(result)
