@@ -362,7 +362,8 @@ def check_fit(result: dict, diff: np.ndarray, sign: np.ndarray, bins: int = CHEC
         side = "left (0)" if below >= 0.8 * len(rows) else "right (1)"
         verdict = (f"the fitted teacher does NOT describe these labels: they lean {side} in "
                    f"{max(below, len(rows) - below)} of {len(rows)} bins, whatever the segments (a "
-                   "side bias, which B-Pref's teachers do not have)")
+                   "side bias, which B-Pref's teachers do not have: --teacher-bias simulates one, "
+                   "the fit does not estimate it)")
     else:
         verdict = ("the fitted teacher does NOT describe these labels: their share of \"right\" "
                    "follows the return difference otherwise than any B-Pref teacher's")

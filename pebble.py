@@ -65,6 +65,8 @@ class Args:
     """the teacher's adaptive skip fraction"""
     teacher_eps_equal: float = 0.0
     """the teacher's adaptive equal fraction"""
+    teacher_bias: float = 0.0
+    """the teacher's side bias (> 0: right, < 0: left; not in the paper)"""
     sampler: Literal["uniform", "disagreement", "entropy", "coverage", "disagreement-coverage",
                      "entropy-coverage"] = "disagreement"
     """query selection (paper Section 4.2)"""

@@ -65,6 +65,8 @@ class Args:
     """the teacher's adaptive skip fraction"""
     teacher_eps_equal: float = 0.0
     """the teacher's adaptive equal fraction"""
+    teacher_bias: float = 0.0
+    """the teacher's side bias (> 0: right, < 0: left; not in the paper)"""
     sampler: Literal["uniform", "disagreement", "entropy", "coverage", "disagreement-coverage",
                      "entropy-coverage"] = "disagreement"
     """query selection (paper Section 4.2)"""
@@ -125,7 +127,7 @@ class Args:
     query_recent_episodes: int = 100
     """segments come from the last N complete episodes (0: all)"""
     critic_reset_updates: int = 100
-    """SAC updates right after the first reward update (RIME keeps the critic)"""
+    """SAC updates after the first reward update (RIME: no critic reset)"""
     rime_alpha: float = 0.5
     """alpha of the lower bound -ln(rho) + alpha rho + min(beta_t var_KL, 3)"""
     rime_beta_max: float = 3.0
@@ -467,8 +469,8 @@ class RunningMeanStd:
 
 
 def warm_start(reward_model, optimizer, buffer, stats, args):
-    """RIME's warm start: r_hat fits the kNN reward scaled into [-1, 1] by its extremes."""
-    if reward_model.input_clip.isinf():  # inputs standardised by the seed steps' states
+    """RIME's warm start: r_hat fits the kNN reward scaled into [-1, 1]."""
+    if reward_model.input_clip.isinf():  # inputs: the seed steps' states
         reward_model.set_input_stats(buffer.obs[: buffer.size])
     std = max(math.sqrt(stats.var), 1e-8)
     scale = max(abs(stats.low - stats.mean), abs(stats.high - stats.mean), 1e-8) / std
@@ -536,7 +538,7 @@ class Discriminator:
 
 
 def train_reward(reward_model, optimizer, preferences, discriminator, args):
-    """RIME's reward learning: each epoch, the discriminator trusts, flips or drops each label."""
+    """RIME: each epoch, the discriminator trusts, flips or drops each label."""
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
     y = preferences["y"]

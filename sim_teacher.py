@@ -32,7 +32,8 @@ import numpy as np
 
 @dataclass
 class SimTeacher:
-    """SimTeacher(beta, gamma, epsilon, delta_skip, delta_equal) of Algorithm 1."""
+    """SimTeacher(beta, gamma, epsilon, delta_skip, delta_equal) of Algorithm 1, and a side bias
+    (not in the paper; 0 changes nothing) to simulate a person whom fit_teacher.py finds leaning."""
 
     beta: float = math.inf
     """rationality constant of Eq. (1): inf = perfectly rational and deterministic, 0 = uniformly random"""
@@ -44,6 +45,9 @@ class SimTeacher:
     """epsilon_adapt of the skip threshold: delta_skip = eps_skip * H / T * R_avg (appendix)"""
     eps_equal: float = 0.0
     """epsilon_adapt of the equal threshold: delta_equal = eps_equal * H / T * |R_avg| (appendix)"""
+    bias: float = 0.0
+    """side bias: with probability |bias| a strict answer is right (bias > 0) or left (< 0) whatever
+    the segments; P(y = 1) = bias+ + (1 - |bias|) P_Algorithm1(y = 1)"""
     seed: int | None = None
     """seed of the teacher's own random generator (stochastic choices and mistakes)"""
     delta_skip: float = field(default=0.0, init=False)
@@ -58,6 +62,8 @@ class SimTeacher:
             value = getattr(self, name)
             if not (0 <= value <= 1):
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
+        if not (-1 <= self.bias <= 1):
+            raise ValueError(f"bias must be in [-1, 1] (a probability, signed by the side), got {self.bias}")
         self.rng = np.random.default_rng(self.seed)
 
     def set_thresholds(self, mean_return: float, segment_len: int, episode_len: int) -> None:
@@ -79,7 +85,7 @@ class SimTeacher:
     def state_dict(self) -> dict:
         """Plain data, as torch modules' state_dict: the fields, thresholds and the generator's state (what a
         checkpoint saves; it loads with torch.load(..., weights_only=True))."""
-        names = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "delta_skip", "delta_equal")
+        names = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias", "delta_skip", "delta_equal")
         return {name: getattr(self, name) for name in names} | {"rng": self.rng.bit_generator.state}
 
     def load_state_dict(self, state: dict) -> None:
@@ -128,6 +134,8 @@ class SimTeacher:
         # Lines 7 and 10: a mistake flips a strict preference with probability eps.
         flip = self.rng.random(len(y)) < self.eps_mistake
         y = np.where(flip, 1.0 - y, y)
+        if self.bias:  # the side bias: no draw at all when it is 0 (the paper's teachers unchanged)
+            y = np.where(self.rng.random(len(y)) < abs(self.bias), float(self.bias > 0), y)
 
         y[equal] = 0.5
         y[~keep] = np.nan
@@ -154,7 +162,7 @@ def make_teacher(name: str, seed: int | None = None, run_dir: str = "", episodes
         return HumanTeacher(run_dir, episodes)
     if name not in TEACHERS:
         raise ValueError(f"unknown teacher {name!r}: choose one of {', '.join(TEACHERS)}")
-    fields = {"beta", "gamma", "eps_mistake", "eps_skip", "eps_equal"}
+    fields = {"beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias"}
     unknown = set(overrides) - fields
     if unknown:
         raise ValueError(f"unknown teacher field(s) {sorted(unknown)}: choose from {sorted(fields)}")

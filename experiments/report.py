@@ -34,7 +34,8 @@ from sim_teacher import TEACHERS, make_teacher  # noqa: E402
 SETTING = ("algorithm", "task", "teacher", "budget", "sampler", "schedule")
 METRICS = ("iqm", "median", "mean", "optimality_gap")
 GROUND_TRUTH = "ground-truth"
-TEACHER_OVERRIDES = ("teacher_beta", "teacher_gamma", "teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal")
+TEACHER_OVERRIDES = ("teacher_beta", "teacher_gamma", "teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal",
+                     "teacher_bias")
 # Config fields that may differ between the seeds of one setting
 PER_RUN_FIELDS = {"seed", "output_dir", "resume", "checkpoint_every", "cuda", "track", "wandb_project_name",
                   "capture_video", "exp_name", "labels_from", "reference_command", "started_by_hand"}

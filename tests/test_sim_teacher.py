@@ -687,3 +687,42 @@ def test_a_simulated_teacher_takes_the_queries_and_ignores_them():
     rewards0, rewards1 = np.zeros((2, 3)), np.ones((2, 3))
     y, keep = make_teacher("oracle", seed=0).label(rewards0, rewards1, {"step": 5})
     np.testing.assert_array_equal(y, [1.0, 1.0])
+
+
+# ---------------------------------------------------------------- the side bias (not in the paper; fit_teacher.py)
+
+
+def test_a_zero_bias_draws_nothing_so_the_paper_s_teachers_label_as_before():
+    rng = np.random.default_rng(0)
+    r0, r1 = rng.random((500, 10)), rng.random((500, 10))
+    teacher = SimTeacher(beta=1.0, eps_mistake=0.1, seed=7)
+    teacher.label(r0, r1)
+    reference = np.random.default_rng(7)
+    reference.random(500)  # the choice
+    reference.random(500)  # the mistakes
+    assert teacher.rng.bit_generator.state == reference.bit_generator.state
+
+
+@pytest.mark.parametrize("bias, better, side", [(-0.3, 1, 0.0), (0.4, 0, 1.0)])
+def test_a_bias_answers_its_side_with_its_probability_whatever_the_segments(bias, better, side):
+    n = 20_000
+    rewards = np.zeros((n, 5)), np.ones((n, 5))  # segment 1 better
+    r0, r1 = rewards if better == 1 else rewards[::-1]
+    y, keep = SimTeacher(bias=bias, seed=3).label(r0, r1)  # rational otherwise: always the better one
+    assert keep.all()
+    assert abs((y == side).mean() - abs(bias)) < 0.01  # 3 standard deviations at n = 20,000
+
+
+def test_a_bias_leaves_equal_and_skipped_pairs_alone():
+    r0 = np.array([[1.0, 1.0], [0.0, 0.0], [5.0, 0.0]])
+    r1 = np.array([[1.0, 1.05], [0.01, 0.0], [0.0, 0.0]])
+    teacher = SimTeacher(eps_equal=0.5, eps_skip=0.1, bias=1.0, seed=0)
+    teacher.set_thresholds(mean_return=20.0, segment_len=2, episode_len=10)  # delta_equal 2.0, delta_skip 0.4
+    y, keep = teacher.label(r0, r1)
+    assert keep.tolist() == [True, False, True] and y[0] == 0.5 and y[2] == 1.0  # only the strict pair answers right
+
+
+def test_a_bias_outside_minus_one_one_is_refused():
+    with pytest.raises(ValueError, match=re.escape("bias must be in [-1, 1]")):
+        SimTeacher(bias=1.5)
+    assert make_teacher("mistake", bias=-0.2).bias == -0.2
