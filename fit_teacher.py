@@ -9,7 +9,8 @@ The likelihood of Algorithm 1 is a product of three factors, each fitted on its 
   - skip: a pair is skipped iff max(R0, R1) < delta_skip (undiscounted returns);
   - equal (kept pairs): y = 0.5 iff |R1 - R0| < delta_equal;
   - choice (strict pairs, y = 0 or 1): P(y = 1) = eps + (1 - 2 eps) sigmoid(beta (A1 - A0)),
-    with the myopic returns A = sum_t gamma^(H-t) r_t and eps = eps_mistake.
+    with the myopic returns A = sum_t gamma^(H-t) r_t and eps = eps_mistake; with a side bias b
+    (SimTeacher's, not in the paper), P(y = 1) = b+ + (1 - |b|) times that.
 Each session's thresholds are delta = eps * scale, scale = (H / T) * R_avg, which its label file
 saves as threshold_scale; older runs' files lack it, and then one delta per threshold is fitted in
 return units and the eps cannot be given.
@@ -30,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import tyro
-from scipy.optimize import minimize
+from scipy.optimize import minimize, minimize_scalar
 from scipy.special import expit, log_expit
 from scipy.stats import chi2
 
@@ -46,7 +47,7 @@ N_BETAS = 48  # grid of beta: 0, N_BETAS values log-spaced over the relevant ran
 BISECTIONS = 8  # steps locating an end of an interval between two grid values
 CHECK_BINS = 10  # bins of the return difference in the goodness-of-fit check
 CHECK_LEVEL = 0.01  # p-value below which the fitted teacher does not describe the labels
-TEACHER = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")  # SimTeacher, --teacher-*
+TEACHER = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias")  # --teacher-*
 
 
 @dataclass
@@ -73,6 +74,8 @@ class Args:
     """--simulate: the teacher's adaptive skip fraction"""
     teacher_eps_equal: float = 0.05
     """--simulate: the teacher's adaptive equal fraction"""
+    teacher_bias: float = 0.0
+    """--simulate: the teacher's side bias (> 0: right, < 0: left, whatever the segments)"""
 
 
 # -------------------------------------------------------------------------------------------------
@@ -329,6 +332,114 @@ def fit_threshold(values: np.ndarray, scales: np.ndarray, hits: np.ndarray, uppe
 
 
 # -------------------------------------------------------------------------------------------------
+# A side bias (SimTeacher's bias, not in the paper)
+# -------------------------------------------------------------------------------------------------
+
+
+def lapses(eps: float, bias: float) -> tuple[float, float, float]:
+    """(l0, l1, k): P(y) = l_y + k P(y | no lapse) with a mistake eps and a side bias b: a strict
+    answer is side sign(b) with probability |b|, else Algorithm 1's (mistakes included)."""
+    l1 = max(bias, 0.0) + (1 - abs(bias)) * eps
+    l0 = max(-bias, 0.0) + (1 - abs(bias)) * eps
+    return l0, l1, (1 - abs(bias)) * (1 - 2 * eps)
+
+
+def biased_loglik(theta, bias: float, diff: np.ndarray, sign: np.ndarray):
+    """log P(strict labels) at (log beta, gamma, eps) (finite beta) and a fixed bias, and its
+    gradient in (log beta, gamma, eps)."""
+    beta, gamma, eps = math.exp(theta[0]), theta[1], theta[2]
+    l0, l1, k = lapses(eps, bias)
+    agree = sign * advantages(diff, np.array([gamma]))[0]
+    q = expit(beta * agree)  # P(the label | no lapse)
+    lapse = np.where(sign > 0, l1, l0)
+    p = np.maximum(lapse + k * q, 1e-300)
+    slope = k * q * (1 - q) / p  # d log p / d (beta * agree)
+    powers = np.arange(diff.shape[1] - 1, -1, -1)
+    dgamma = sign * (diff @ (powers * gamma ** np.maximum(powers - 1, 0)))
+    deps = (1 - abs(bias)) * (1 - 2 * q) / p
+    grad = np.array([(slope * beta * agree).sum(), (slope * beta * dgamma).sum(), deps.sum()])
+    return float(np.log(p).sum()), grad
+
+
+def rational_biased(bias: float, agree: np.ndarray, sign: np.ndarray) -> tuple[float, float, float]:
+    """beta = inf: the best (log-likelihood, gamma, eps) over DENSE_GAMMAS and a grid of eps, from
+    the counts of labels with, against and tied with the returns on each side; agree (G, N)."""
+    eps = np.linspace(0.0, 0.5, 201)
+    l0, l1, k = (np.array(v) for v in zip(*(lapses(float(e), bias) for e in eps)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        loglik = 0.0
+        for side, lapse in ((1.0, l1), (-1.0, l0)):
+            on_side = sign == side
+            counts = [((agree > 0) & on_side).sum(1), ((agree < 0) & on_side).sum(1),
+                      ((agree == 0) & on_side).sum(1)]  # (G,) each
+            for count, share in zip(counts, (1.0, 0.0, 0.5)):
+                term = np.log(lapse + k * share)[:, None] * count[None]  # (E, G)
+                loglik = loglik + np.where(count[None] > 0, term, 0.0)
+    e, g = np.unravel_index(np.argmax(loglik), loglik.shape)
+    return float(loglik[e, g]), float(DENSE_GAMMAS[g]), float(eps[e])
+
+
+def fit_bias(diff: np.ndarray, sign: np.ndarray, choice: dict, level: float) -> dict:
+    """The side bias's MLE and profile-likelihood interval: at each b of a grid (walked outward
+    from 0, each fit started from its neighbour's), beta, gamma and eps are fitted again (a local
+    optimiser, and the rational teacher exactly); each end of the interval is then bisected. The
+    bias-free fit is the profile at b = 0."""
+    agree = sign * advantages(diff, DENSE_GAMMAS)
+    bounds = [(-30.0, 30.0), (GAMMAS[0], 1.0), (0.0, 0.5)]
+    base = [math.log(min(choice["beta"], 1e12)), choice["gamma"], choice["eps_mistake"]]
+
+    def profile(bias: float, start: list) -> tuple[float, list]:
+        result = minimize(lambda x: tuple(-v for v in biased_loglik(x, bias, diff, sign)),
+                          [min(max(v, lo), hi) for v, (lo, hi) in zip(start, bounds)], jac=True,
+                          method="TNC", bounds=bounds)
+        best = (-float(result.fun), [float(v) for v in result.x])
+        loglik, gamma, eps = rational_biased(bias, agree, sign)
+        return best if best[0] > loglik else (loglik, [math.inf, gamma, eps])
+
+    at = {0.0: profile(0.0, base)}
+    cut_drop = chi2.ppf(level, 1) / 2
+    for direction in (1, -1):
+        previous = at[0.0]
+        for bias in direction * np.arange(0.05, 0.951, 0.05):
+            start = previous[1] if math.isfinite(previous[1][0]) else base
+            previous = at[float(bias)] = profile(float(bias), start)
+            if previous[0] < max(v[0] for v in at.values()) - cut_drop - 5:
+                break  # far below the best: the interval ends before
+    grid = sorted(at)
+    best = max(grid, key=lambda b: at[b][0])
+    refined = minimize_scalar(lambda b: -profile(b, at[best][1] if math.isfinite(at[best][1][0])
+                                                 else base)[0],
+                              bounds=(max(best - 0.05, -1.0), min(best + 0.05, 1.0)),
+                              method="bounded", options={"xatol": 1e-3})
+    if -refined.fun > at[best][0]:
+        best = float(refined.x)
+        at[best] = profile(best, base)
+        grid = sorted(at)
+    cut = at[best][0] - cut_drop
+    ends = []
+    for direction in (-1, 1):
+        inside, outside = best, None
+        for b in (grid[grid.index(best)::-1] if direction < 0 else grid[grid.index(best):]):
+            if at[b][0] < cut:
+                outside = b
+                break
+            inside = b
+        start = at[inside][1]
+        for _ in range(BISECTIONS if outside is not None else 0):
+            middle = (inside + outside) / 2
+            loglik, theta = profile(middle, start if math.isfinite(start[0]) else base)
+            if loglik >= cut:
+                inside, start = middle, theta
+            else:
+                outside = middle
+        ends.append(float(inside))
+    theta = at[best][1]
+    return {"bias": float(best), "ci": tuple(ends), "loglik": at[best][0],
+            "beta": math.exp(theta[0]) if math.isfinite(theta[0]) else math.inf, "gamma": theta[1],
+            "eps_mistake": theta[2]}
+
+
+# -------------------------------------------------------------------------------------------------
 # Goodness of fit
 # -------------------------------------------------------------------------------------------------
 
@@ -343,7 +454,8 @@ def check_fit(result: dict, diff: np.ndarray, sign: np.ndarray, bins: int = CHEC
         q = 0.5 * (1 + np.sign(advantage))
     else:
         q = expit(result["beta"] * advantage)
-    predicted = result["eps_mistake"] + (1 - 2 * result["eps_mistake"]) * q
+    l0, l1, k = lapses(result["eps_mistake"], result.get("bias", 0.0))
+    predicted = l1 + k * q
     groups = np.array_split(np.argsort(advantage, kind="stable"), min(bins, len(sign)))
     rows, statistic = [], 0.0
     for group in groups:
@@ -362,8 +474,7 @@ def check_fit(result: dict, diff: np.ndarray, sign: np.ndarray, bins: int = CHEC
         side = "left (0)" if below >= 0.8 * len(rows) else "right (1)"
         verdict = (f"the fitted teacher does NOT describe these labels: they lean {side} in "
                    f"{max(below, len(rows) - below)} of {len(rows)} bins, whatever the segments (a "
-                   "side bias, which B-Pref's teachers do not have: --teacher-bias simulates one, "
-                   "the fit does not estimate it)")
+                   "side bias, which B-Pref's six teachers do not have)")
     else:
         verdict = ("the fitted teacher does NOT describe these labels: their share of \"right\" "
                    "follows the return difference otherwise than any B-Pref teacher's")
@@ -425,6 +536,15 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
     result["gamma_unknown"] = low <= GAMMAS[0] and high >= 1
     if result["gamma_unknown"]:
         result["gamma"] = 1.0
+    # The side bias: 0 (the simplest teacher) when its interval holds 0, else beta, gamma and eps
+    # fitted again with it (their intervals are the bias-free fit's no more: not given)
+    biased = fit_bias((rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0), result,
+                      level)
+    result["ci"]["bias"] = biased["ci"]
+    result["bias"] = 0.0
+    if not biased["ci"][0] <= 0 <= biased["ci"][1]:
+        result |= {name: biased[name] for name in ("bias", "beta", "gamma", "eps_mistake")}
+        result["ci"] |= {name: (None, None) for name in ("beta", "gamma", "eps_mistake")}
     result["check"] = check_fit(result, (rewards1 - rewards0)[strict],
                                 np.where(y[strict] == 1.0, 1.0, -1.0))
     # The thresholds in eps units (each session's delta = eps * its scale) when every session has
@@ -450,7 +570,8 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
 
 def teacher_overrides(result: dict) -> dict:
     """The fit's make_teacher("oracle", **overrides) fields, rounded as --teacher-* prints them."""
-    return {name: float(f"{result[name]:.4g}") for name in TEACHER if result[name] is not None}
+    return {name: float(f"{result[name]:.4g}") for name in TEACHER
+            if result[name] is not None and not (name == "bias" and result[name] == 0)}
 
 
 def teacher_flags(result: dict) -> str:
@@ -468,6 +589,7 @@ def report(result: dict, truth: dict | None = None) -> str:
         f"eps_{k}" if f"eps_{k}" in result["ci"] else f"delta_{k}" for k in ("skip", "equal")]
     rows = [("parameter", "estimate", f"{100 * result['level']:g}% CI (profile likelihood)")
             + (("run's teacher",) if truth else ())]
+    names.insert(3, "bias")
     for name in names:
         low, high = result["ci"][name]
         rows.append((name, number(result[name]), f"[{number(low)}, {number(high)}]")
@@ -481,6 +603,10 @@ def report(result: dict, truth: dict | None = None) -> str:
         if result[f"{name}_disagreements"]:
             lines.append(f"note: no {name} threshold explains every decision: "
                          f"{result[f'{name}_disagreements']} go the other way (a lapse rate fits)")
+    if result["bias"]:
+        lines.append("note: the answers lean to one side whatever the segments (bias: the share "
+                     "of strict answers given to the right (> 0) or left (< 0) regardless); beta, "
+                     "gamma and eps_mistake are fitted again with it, without intervals")
     if result.get("gamma_unknown"):
         lines.append("note: gamma's interval is its whole range: the labels do not tell it "
                      "(segments whose rewards hardly change along them), so gamma is 1, the "
@@ -519,7 +645,8 @@ def run_teacher(path: str) -> dict | None:
             saved = json.load(f)
     except (StopIteration, OSError, ValueError):
         return None
-    truth = {name: saved.get(f"teacher_{name}") for name in TEACHER}
+    truth = {name: saved.get(f"teacher_{name}", 0.0 if name == "bias" else None)
+             for name in TEACHER}
     if saved.get("teacher") == "human" or not all(isinstance(v, (int, float))
                                                    for v in truth.values()):
         return None
@@ -534,7 +661,8 @@ def main():
                              f"sessions of {args.pairs} pairs")
         if args.simulate:
             teacher = SimTeacher(args.teacher_beta, args.teacher_gamma, args.teacher_eps_mistake,
-                                 args.teacher_eps_skip, args.teacher_eps_equal, seed=args.seed)
+                                 args.teacher_eps_skip, args.teacher_eps_equal, args.teacher_bias,
+                                 seed=args.seed)
             simulate(args.labels, teacher, args.pairs, args.sessions, seed=args.seed)
         data = load_labels(args.labels)
         try:

@@ -323,18 +323,40 @@ def test_the_goodness_of_fit_check_passes_labels_of_each_b_pref_teacher(tmp_path
     check = result["check"]
     assert check["p_value"] >= fit_teacher.CHECK_LEVEL and check["verdict"].startswith("the fitted teacher describes")
     assert sum(row["n"] for row in check["bins"]) == result["n_strict"]
+    assert result["bias"] == 0.0 and result["ci"]["bias"][0] <= 0 <= result["ci"]["bias"][1]  # no bias found
 
 
 @pytest.mark.parametrize("side", [0.0, 1.0])
-def test_the_check_names_a_side_bias_that_the_fit_cannot(tmp_path, side):
-    # A stochastic teacher whose strict answers are replaced by one side 60% of the time (about 80% "left" in all)
-    simulate(str(tmp_path), SimTeacher(beta=1.0, seed=0), 1000, 10, seed=0)
+def test_a_side_bias_is_fitted_and_a_bias_free_teacher_fails_the_check(tmp_path, side):
+    # A stochastic teacher (beta 1, gamma 0.95, eps 0.1) whose strict answers are replaced by one side 60% of the time
+    simulate(str(tmp_path), SimTeacher(beta=1.0, gamma=0.95, eps_mistake=0.1, seed=0), 1000, 10, seed=0)
     data = load_labels(str(tmp_path))
     y = data["y"].copy()
     strict = data["keep"] & (y != 0.5)
     y[strict & (np.random.default_rng(1).random(len(y)) < 0.6)] = side
     result = fit(data["rewards0"], data["rewards1"], y, data["keep"], data["threshold_scale"])
-    check = result["check"]
+    truth = 0.6 if side == 1.0 else -0.6
+    low, high = result["ci"]["bias"]
+    assert low <= truth <= high and not low <= 0 <= high and abs(result["bias"] - truth) < 0.08
+    assert result["check"]["p_value"] >= fit_teacher.CHECK_LEVEL  # the biased teacher describes them
+    assert f"--teacher-bias {result['bias']:.4g}" in fit_teacher.report(result)
+    # without the bias, the check names it
+    bias_free = fit_teacher.fit_choice((data["rewards1"] - data["rewards0"])[strict],
+                                       np.where(y[strict] == 1.0, 1.0, -1.0), 0.95)
+    check = fit_teacher.check_fit(bias_free, (data["rewards1"] - data["rewards0"])[strict],
+                                  np.where(y[strict] == 1.0, 1.0, -1.0))
     assert check["p_value"] < 1e-6
     assert f"they lean {'left (0)' if side == 0 else 'right (1)'} in 10 of 10 bins" in check["verdict"]
-    assert "verdict: the fitted teacher does NOT describe these labels" in fit_teacher.report(result)
+
+
+def test_a_known_bias_is_recovered_over_seeds(tmp_path):
+    # SimTeacher(beta 1, bias 0.2), 1000 pairs, seeds 0-7: the 95% interval holds 0.2 on at least 7 and 0 on none
+    covered = 0
+    for seed in range(8):
+        simulate(str(tmp_path / str(seed)), SimTeacher(beta=1.0, bias=0.2, seed=seed), 1000, 10, seed=seed)
+        data = load_labels(str(tmp_path / str(seed)))
+        result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], data["threshold_scale"])
+        low, high = result["ci"]["bias"]
+        covered += low <= 0.2 <= high
+        assert not low <= 0 <= high, (seed, result["ci"]["bias"])
+    assert covered >= 7
