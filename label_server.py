@@ -35,7 +35,6 @@ class Args:
 
 
 LABELS = tuple(sim_teacher.ANSWER_LABELS)  # y = 0, 1, 0.5, dropped
-CLIP_HEIGHT = 160  # pixels: frames taller than this are scaled down
 SHEET_COLUMNS = 10  # frames a row in a clip's sprite sheet
 JPEG_QUALITY = 90
 SESSION_FILE = re.compile(r"session_(\d{4,})\.npz")
@@ -91,13 +90,9 @@ def replay_frames(env, seed: int, start: int, actions: np.ndarray, segment_len: 
 
 
 def sprite_sheet(frames: list) -> bytes:
-    """The frames as one JPEG, SHEET_COLUMNS a row, each scaled down to CLIP_HEIGHT pixels."""
+    """The frames as one JPEG, SHEET_COLUMNS a row, at the renderer's full resolution."""
     images = [Image.fromarray(np.asarray(frame, np.uint8)) for frame in frames]
     width, height = images[0].size
-    if height > CLIP_HEIGHT:
-        width = round(width * CLIP_HEIGHT / height)
-        height = CLIP_HEIGHT
-        images = [image.resize((width, height), Image.Resampling.LANCZOS) for image in images]
     columns = min(len(images), SHEET_COLUMNS)
     rows = math.ceil(len(images) / columns)
     sheet = Image.new("RGB", (columns * width, rows * height))
@@ -167,9 +162,11 @@ class LabelServer(http.server.ThreadingHTTPServer):
             pass
         self.shutdown()
         self.server_close()
-        if self.env is not None:
-            self.renderer.submit(self.env.close)
-        self.renderer.shutdown(cancel_futures=True)
+        for future in list(self.renders.values()):
+            future.cancel()  # clips not started yet
+        if self.env is not None:  # frees its OpenGL context on the thread that made it, now
+            self.renderer.submit(self.env.close).result()
+        self.renderer.shutdown()
 
     # Sessions and answers (call with self.lock held)
     def session_path(self, number: int, suffix: str = ".npz") -> str:
@@ -205,9 +202,15 @@ class LabelServer(http.server.ThreadingHTTPServer):
         """What the page shows: the task, the current session's progress, its first unanswered
         pair (next), the one after (to load ahead) and the last answered (for undo)."""
         state = {"env_id": self.env_id, "segment_len": self.segment_len,
-                 "columns": min(self.segment_len, SHEET_COLUMNS), "session": None}
+                 "columns": min(self.segment_len, SHEET_COLUMNS), "session": None, "done": None,
+                 "run_finished": os.path.exists(os.path.join(self.run_dir, "final_model.pt"))}
         session = self.current()
-        if session is None:
+        if session is None:  # the last session answered (the run learns from it), or none yet
+            names = os.listdir(self.queries_dir) if os.path.isdir(self.queries_dir) else []
+            numbers = [int(m.group(1)) for m in map(SESSION_FILE.fullmatch, names) if m]
+            if numbers:
+                done = self.session(max(numbers))
+                state["done"] = {"session": done.number, "answers": done.n}
             return state
         answers = self.read_answers(session.number)
         unanswered = [i for i in range(session.n) if str(i) not in answers["answers"]]
@@ -242,7 +245,9 @@ class LabelServer(http.server.ThreadingHTTPServer):
             session = self.checked_query(request)
             answers = self.read_answers(session.number)
             if str(request["id"]) in answers["answers"]:
-                raise RequestError(409, f"pair {request['id']} is answered already", self.state())
+                raise RequestError(409, f"pair {request['id']} was answered first in another "
+                                   "browser: this answer was not taken, the first one stands",
+                                   self.state())
             answers["order"].append(request["id"])
             answers["answers"][str(request["id"])] = request["label"]
             self.write_answers(session.number, answers)
@@ -455,32 +460,42 @@ PAGE = """<!doctype html>
 <meta charset="utf-8">
 <title>Which is better?</title>
 <style>
-  body { font-family: system-ui, sans-serif; margin: 24px 32px; background: #f5f5f2; color: #222; }
-  header { display: flex; gap: 28px; align-items: baseline; }
-  #task { font-size: 1.5em; font-weight: 600; }
-  #progress { font-size: 1.3em; font-variant-numeric: tabular-nums; }
+  body { font-family: system-ui, sans-serif; margin: 10px 16px; background: #f5f5f2; color: #222;
+         max-width: 1100px; }
+  header { display: flex; flex-wrap: wrap; gap: 4px 24px; align-items: baseline; }
+  #task { font-size: 1.4em; font-weight: 600; }
+  #progress { font-size: 1.25em; font-variant-numeric: tabular-nums; }
   #where { color: #666; }
-  #question { font-size: 1.15em; margin: 16px 0 0; }
-  #clips { display: flex; gap: 28px; margin: 12px 0 6px; }
-  figure { margin: 0; text-align: center; font-size: 1.1em; }
-  canvas { width: 420px; background: #ddd; border: 2px solid #999; }
-  #frame { color: #666; font-variant-numeric: tabular-nums; margin-bottom: 14px; }
-  button { font-size: 1.05em; padding: 9px 14px; margin: 0 8px 8px 0; cursor: pointer; }
+  #question { font-size: 1.1em; margin: 6px 0 0; }
+  #clips { display: grid; grid-template-columns: 1fr 1fr; gap: 14px; margin: 6px 0 4px; }
+  figure { margin: 0; text-align: center; font-size: 1.05em; min-width: 0; }
+  canvas { max-width: 100%; max-height: 46vh; background: #ddd; border: 2px solid #999;
+           box-sizing: border-box; }  /* the frames' own size, smaller only where it must */
+  #frame { color: #444; font-variant-numeric: tabular-nums; margin: 2px 0 6px; }
+  #controls button { font-size: 0.9em; padding: 4px 9px; }
+  button { font-size: 1em; padding: 7px 11px; margin: 0 6px 6px 0; cursor: pointer; }
   kbd { border: 1px solid #aaa; border-radius: 3px; padding: 0 4px; background: #fff;
         font-size: 0.85em; }
-  #message { color: #b00020; min-height: 1.4em; font-weight: 600; }
+  #message { color: #b00020; font-weight: 600; margin: 4px 0 0; }
+  #message:empty { display: none; }
 </style>
 </head>
 <body>
 <header><span id="task"></span><span id="progress"></span><span id="where"></span></header>
-<p id="waiting" hidden>Waiting for the run's next feedback session (this page looks every 2 s).</p>
+<p id="message"></p>
+<p id="waiting" hidden></p>
 <main id="pair" hidden>
   <p id="question">Which clip does the task better?</p>
   <div id="clips">
     <figure><canvas id="clip0"></canvas><figcaption>Left</figcaption></figure>
     <figure><canvas id="clip1"></canvas><figcaption>Right</figcaption></figure>
   </div>
-  <div id="frame"></div>
+  <div id="controls"><span id="frame"></span>
+    <button id="pause">Pause <kbd>Space</kbd> <kbd>P</kbd></button>
+    <button id="slow">Half speed <kbd>H</kbd></button>
+    <button id="back">&#9664; frame <kbd>,</kbd></button>
+    <button id="forward">frame &#9654; <kbd>.</kbd></button>
+  </div>
   <div>
     <button data-label="left">Left is better <kbd>&larr;</kbd> <kbd>1</kbd></button>
     <button data-label="equal">Equally good <kbd>&darr;</kbd> <kbd>E</kbd> <kbd>3</kbd></button>
@@ -489,11 +504,12 @@ PAGE = """<!doctype html>
     <button id="undo">Undo <kbd>U</kbd> <kbd>Backspace</kbd></button>
   </div>
 </main>
-<p id="message"></p>
 <script>
 const KEYS = {ArrowLeft: "left", "1": "left", ArrowRight: "right", "2": "right",
               ArrowDown: "equal", e: "equal", E: "equal", "3": "equal",
               s: "skip", S: "skip", "0": "skip", u: "undo", U: "undo", Backspace: "undo"};
+const PLAYBACK = {" ": "pause", p: "pause", P: "pause", h: "slow", H: "slow", ",": "back",
+                  ".": "forward"};
 const NO_SERVER = "the label server does not answer: is label_server.py running?";
 const FPS = 20;
 const HOLD = 8;  // frames the last frame stays before the clips start again
@@ -501,7 +517,9 @@ let state = null;  // the server's state (/api/state)
 let shown = null;  // the pair on screen: {session, id, images}
 let wanted = null;  // the pair being loaded
 let busy = false;  // an answer or undo in flight
-let tick = 0;
+let tick = 0;  // frames of the loop so far (fractional at half speed)
+let paused = false;
+let speed = 1;  // 1 or 0.5
 let pollTimer = null;
 const clips = new Map();  // "session/id" -> Promise of the pair's two sprite sheets
 
@@ -558,6 +576,14 @@ async function show(newState) {
     $("pair").hidden = true;
     $("waiting").hidden = false;
     $("progress").textContent = $("where").textContent = "";
+    if (state.run_finished) {
+      $("waiting").textContent = "The run has finished: it asks for no more answers. " +
+        "You can close this page.";
+      return;  // nothing more to wait for
+    }
+    $("waiting").textContent = (state.done === null ? "" :
+      `Session ${state.done.session}: ${state.done.answers} answers taken, the run is learning. `) +
+      "Waiting for the run's next feedback session (this page looks every 2 s).";
     pollTimer = setTimeout(refresh, 2000);
     return;
   }
@@ -620,10 +646,24 @@ async function act(action) {
   else updateButtons();
 }
 
-function draw() {
+function playback(action) {
+  const length = state === null ? 1 : state.segment_len;
+  if (action === "pause") paused = !paused;
+  if (action === "slow") speed = speed === 1 ? 0.5 : 1;
+  if (action === "back" || action === "forward") {  // one frame, paused
+    const frame = Math.min(Math.floor(tick) % (length + HOLD), length - 1);
+    tick = Math.max(0, Math.min(length - 1, frame + (action === "back" ? -1 : 1)));
+    paused = true;
+  }
+  $("pause").firstChild.textContent = paused ? "Play " : "Pause ";
+  $("slow").firstChild.textContent = speed === 1 ? "Half speed " : "Full speed ";
+  draw(false);
+}
+
+function draw(advance = true) {
   if (!shown) return;
   const length = state.segment_len;
-  const frame = Math.min(tick % (length + HOLD), length - 1);
+  const frame = Math.min(Math.floor(tick) % (length + HOLD), length - 1);
   const columns = state.columns;
   const rows = Math.ceil(length / columns);
   shown.images.forEach((image, side) => {
@@ -636,22 +676,31 @@ function draw() {
     const y = Math.floor(frame / columns) * height;
     canvas.getContext("2d").drawImage(image, x, y, width, height, 0, 0, width, height);
   });
-  $("frame").textContent = `frame ${frame + 1} / ${length}`;
-  tick += 1;
+  $("frame").textContent = `frame ${frame + 1} / ${length}` + (paused ? ", paused" : "") +
+    (speed === 1 ? "" : ", half speed");
+  if (advance && !paused) tick += speed;
 }
 
 document.addEventListener("keydown", event => {
   if (event.ctrlKey || event.altKey || event.metaKey || event.repeat) return;
+  if (PLAYBACK[event.key] !== undefined) {
+    event.preventDefault();
+    playback(PLAYBACK[event.key]);
+    return;
+  }
   const action = KEYS[event.key];
   if (action === undefined) return;
   event.preventDefault();
   act(action);
 });
+for (const id of ["pause", "slow", "back", "forward"]) {
+  $(id).addEventListener("click", () => playback(id));
+}
 for (const button of document.querySelectorAll("button[data-label]")) {
   button.addEventListener("click", () => act(button.dataset.label));
 }
 $("undo").addEventListener("click", () => act("undo"));
-setInterval(draw, 1000 / FPS);
+setInterval(() => draw(), 1000 / FPS);
 refresh();
 </script>
 </body>

@@ -190,6 +190,9 @@ class DMCEnv(gym.Env):
     def render(self):
         return self.dmc.physics.render(height=240, width=320, camera_id=0)
 
+    def close(self):
+        self.dmc.physics.free()
+
 
 class MetaWorldSeeding(gym.Wrapper):
     """reset(seed=s) seeds the object and goal positions."""

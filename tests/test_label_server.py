@@ -89,7 +89,7 @@ def test_each_answer_is_in_the_answers_file_as_it_is_given(run):
     run_dir, server, _ = run
     assert request(server, "GET", "/api/state")[1] == {
         "env_id": ENV_ID, "segment_len": 5, "columns": 5, "session": 0, "step": 1000, "n": 4,
-        "answered": 0, "next": 0, "after": 1, "last": None}
+        "answered": 0, "next": 0, "after": 1, "last": None, "done": None, "run_finished": False}
     status, state = answer(server, 0, "left")
     assert status == 200 and (state["answered"], state["next"], state["last"]) == (1, 1, 0)
     assert answers_file(run_dir) == {"order": [0], "answers": {"0": "left"}}
@@ -114,7 +114,7 @@ def test_the_answers_file_is_replaced_whole_never_written_in_place(run, monkeypa
     request(server, "POST", "/api/undo", {"session": 0, "id": 0})
     answers = str(run_dir / "queries" / "session_0000_answers.json")
     assert replaced == [(answers + ".tmp", answers)] * 2
-    assert sorted(os.listdir(run_dir / "queries")) == ["session_0000.npz",
+    assert sorted(os.listdir(run_dir / "queries")) == ["page_url.txt", "session_0000.npz",
                                                        "session_0000_answers.json"]
 
 
@@ -140,7 +140,8 @@ def test_a_second_answer_to_a_pair_is_a_409_and_the_first_one_stands(run):
     run_dir, server, _ = run
     answer(server, 0, "left")
     status, reply = answer(server, 0, "right")  # a second browser, showing pair 0 still
-    assert status == 409 and reply["error"] == "pair 0 is answered already"
+    assert status == 409 and reply["error"] == ("pair 0 was answered first in another browser: this answer was "
+                                                "not taken, the first one stands")
     assert reply["state"]["next"] == 1  # where that page goes
     assert answers_file(run_dir) == {"order": [0], "answers": {"0": "left"}}
 
@@ -257,10 +258,10 @@ def jpeg_of(run_dir, name: str) -> bytes:
     return (run_dir / "queries" / "session_0000_clips" / name).read_bytes()
 
 
-def test_a_clip_scales_tall_frames_to_160_pixels():
+def test_a_clip_keeps_the_renderer_s_full_resolution():
     frames = [np.full((480, 640, 3), 10 * t, np.uint8) for t in range(12)]
     sheet = Image.open(io.BytesIO(label_server.sprite_sheet(frames)))
-    assert sheet.size == (10 * 213, 2 * 160)  # 10 frames a row, each 213 x 160
+    assert sheet.size == (10 * 640, 2 * 480)  # 10 frames a row, each as rendered
 
 
 @pytest.mark.parametrize("path", [
@@ -423,6 +424,34 @@ def test_a_rendering_failure_answers_every_clip_request_and_the_server_keeps_ser
         process.communicate(timeout=60)
 
 
+def test_a_stopped_server_frees_its_opengl_context_without_a_traceback(tmp_path):
+    """A DMC clip rendered with osmesa, then the server closed: the environment frees its context on the render
+    thread, so nothing is left for the interpreter's exit to free (it printed tracebacks)."""
+    import ctypes.util
+
+    if ctypes.util.find_library("OSMesa") is None:
+        pytest.skip("no osmesa (Debian: apt-get install libosmesa6)")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.json").write_text(json.dumps({"env_id": "walker-walk", "segment_len": 3, "seed": 1}))
+    arrays = {"step": np.int64(1000)}
+    for side in (0, 1):
+        arrays.update({f"seed{side}": np.array([1]), f"start{side}": np.array([0]),
+                       f"actions{side}": np.zeros((1, 3, 6), np.float32)})
+    (run_dir / "queries").mkdir()
+    np.savez(run_dir / "queries" / "session_0000.npz", **arrays)
+    script = ("import sys, http.client, label_server\n"
+              f"server = label_server.serve({str(run_dir)!r}, '127.0.0.1', 0)\n"
+              "connection = http.client.HTTPConnection(*server.server_address[:2], timeout=120)\n"
+              "connection.request('GET', '/clips/0/0/0.jpg')\n"
+              "print(connection.getresponse().status)\n"
+              "server.close()\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                            env=ENV | {"MUJOCO_GL": "osmesa"})
+    assert result.returncode == 0 and result.stdout.strip() == "200", result.stderr[-2000:]
+    assert "Traceback" not in result.stderr and "Exception ignored" not in result.stderr, result.stderr[-2000:]
+
+
 # A real browser: headless Chromium (Debian's chromium and chromium-driver) driven by selenium
 def chromium() -> tuple[str | None, str | None]:
     """The paths of the browser and its driver, or None."""
@@ -479,6 +508,80 @@ def click(driver, label: str):
     driver.find_element("css selector", f"button[data-label={label}]").click()
 
 
+def shoot(driver, name: str):
+    """LABEL_PAGE_SCREENSHOTS=docs saves the page's states as docs/<name>."""
+    if os.environ.get("LABEL_PAGE_SCREENSHOTS"):
+        driver.save_screenshot(os.path.join(os.environ["LABEL_PAGE_SCREENSHOTS"], name))
+
+
+def frame_number(driver) -> int:
+    return int(text(driver, "frame").split()[1])
+
+
+def test_the_page_fits_800_by_600_and_its_playback_pauses_slows_and_steps(tmp_path, browser):
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
+    try:
+        browser.set_window_size(800, 600)
+        browser.get(server.url)
+        wait_for(browser, lambda: pair_ready(browser))
+        layout = browser.execute_script(
+            "const r = id => document.getElementById(id).getBoundingClientRect();"
+            "const buttons = [...document.querySelectorAll('button')].map(b => b.getBoundingClientRect());"
+            "return {width: innerWidth, height: innerHeight, scroll: document.documentElement.scrollWidth,"
+            " right: r('clip1').right, bottom: Math.max(...buttons.map(b => b.bottom)),"
+            " canvas: document.getElementById('clip0').width}")
+        assert layout["width"] <= 800 and layout["height"] <= 600
+        assert layout["scroll"] <= layout["width"] and layout["right"] <= layout["width"]  # no sideways scrolling
+        assert layout["bottom"] <= layout["height"]  # every button above the fold
+        assert layout["canvas"] == 160  # the toy renderer's frames are 160 x 120: drawn at that resolution
+        shoot(browser, "label_page.png")
+        press(browser, "p")  # pause
+        wait_for(browser, lambda: "paused" in text(browser, "frame"))
+        held = frame_number(browser)
+        time.sleep(0.6)
+        assert frame_number(browser) == held and text(browser, "pause").startswith("Play")
+        press(browser, ".")
+        wait_for(browser, lambda: frame_number(browser) == min(held + 1, SEGMENT_LEN))
+        press(browser, ",")
+        press(browser, ",")
+        wait_for(browser, lambda: frame_number(browser) == max(min(held + 1, SEGMENT_LEN) - 2, 1))
+        browser.find_element("id", "slow").click()
+        wait_for(browser, lambda: "half speed" in text(browser, "frame"))
+        press(browser, " ")  # play again, at half speed
+        wait_for(browser, lambda: "paused" not in text(browser, "frame"))
+        seen = set()
+        deadline = time.time() + 5
+        while len(seen) < 2 and time.time() < deadline:
+            seen.add(frame_number(browser))
+            time.sleep(0.05)
+        assert len(seen) >= 2  # it plays
+    finally:
+        server.close()
+
+
+def test_the_page_says_when_a_session_is_taken_and_when_the_run_has_finished(tmp_path, browser):
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
+    try:
+        browser.set_window_size(800, 600)
+        browser.get(server.url)
+        wait_for(browser, lambda: pair_ready(browser))
+        for query in (1, 2, 3):
+            answer(server, query, "left")
+        press(browser, "1")  # the last pair (0), in the page
+        wait_for(browser, lambda: text(browser, "waiting").startswith(
+            "Session 0: 4 answers taken, the run is learning."))
+        shoot(browser, "label_page_session_done.png")
+        (run_dir / "final_model.pt").write_bytes(b"")  # what a run writes at its end
+        wait_for(browser, lambda: text(browser, "waiting").startswith("The run has finished"))
+        shoot(browser, "label_page_run_finished.png")
+    finally:
+        server.close()
+
+
 def test_a_person_labels_a_session_in_a_browser(tmp_path, browser):
     from selenium.webdriver.common.keys import Keys
 
@@ -533,7 +636,9 @@ def test_the_page_moves_on_when_another_browser_answered_its_pair(tmp_path, brow
         wait_for(browser, lambda: pair_ready(browser))
         assert answer(server, 0, "equal")[0] == 200  # the other browser
         press(browser, "1")  # this page still shows pair 0
-        wait_for(browser, lambda: text(browser, "message") == "pair 0 is answered already")
+        wait_for(browser, lambda: text(browser, "message").startswith(
+            "pair 0 was answered first in another browser: this answer was not taken"))
+        shoot(browser, "label_page_other_browser.png")
         wait_for(browser, lambda: text(browser, "progress") == "2 / 4" and pair_ready(browser))
         assert "pair 1" in text(browser, "where")
         browser.refresh()  # a reload resumes at the first unanswered pair
