@@ -292,6 +292,15 @@ def fit_choice(diff: np.ndarray, sign: np.ndarray, level: float) -> dict:
             ends.append(float(last))
         ci[name] = tuple(ends)
     ci["beta"] = tuple(math.exp(v) for v in ci["beta"])
+    # The rational teacher's likelihood over gamma is a step function of the count of labels against
+    # the returns: its ratio is no chi2 (one label more against them costs log((1 - eps) / eps), 2.2
+    # at eps = 0.1, above the cut on its own). Gamma's interval holds, besides, the hull of every
+    # gamma whose count is at most one more than the fewest within the cut (as a threshold's lapse)
+    within = rational_loglik(wrong, ties, n) >= cut
+    inside = DENSE_GAMMAS[wrong <= wrong[within].min() + 1] if within.any() else ()
+    if len(inside):
+        ci["gamma"] = (min(ci["gamma"][0], float(inside.min())),
+                       max(ci["gamma"][1], float(inside.max())))
     return {"loglik": loglik, "beta": math.exp(mle[0]), "gamma": mle[1], "eps_mistake": mle[2],
             "ci": ci}
 
@@ -542,7 +551,9 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
                       level)
     result["ci"]["bias"] = biased["ci"]
     result["bias"] = 0.0
-    if not biased["ci"][0] <= 0 <= biased["ci"][1]:
+    if not biased["ci"][0] <= 0 <= biased["ci"][1] and check_fit(
+            result, (rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0)
+    )["p_value"] < CHECK_LEVEL:  # a bias that the bias-free teacher's labels would not show
         result |= {name: biased[name] for name in ("bias", "beta", "gamma", "eps_mistake")}
         result["ci"] |= {name: (None, None) for name in ("beta", "gamma", "eps_mistake")}
     result["check"] = check_fit(result, (rewards1 - rewards0)[strict],
