@@ -518,68 +518,58 @@ def frame_number(driver) -> int:
     return int(text(driver, "frame").split()[1])
 
 
-def test_the_page_fits_800_by_600_and_its_playback_pauses_slows_and_steps(tmp_path, browser):
-    run_dir = tmp_path / "run"
-    make_run(run_dir)
-    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
-    try:
-        browser.set_window_size(800, 600)
-        browser.get(server.url)
-        wait_for(browser, lambda: pair_ready(browser))
-        layout = browser.execute_script(
-            "const r = id => document.getElementById(id).getBoundingClientRect();"
-            "const buttons = [...document.querySelectorAll('button')].map(b => b.getBoundingClientRect());"
-            "return {width: innerWidth, height: innerHeight, scroll: document.documentElement.scrollWidth,"
-            " right: r('clip1').right, bottom: Math.max(...buttons.map(b => b.bottom)),"
-            " canvas: document.getElementById('clip0').width}")
-        assert layout["width"] <= 800 and layout["height"] <= 600
-        assert layout["scroll"] <= layout["width"] and layout["right"] <= layout["width"]  # no sideways scrolling
-        assert layout["bottom"] <= layout["height"]  # every button above the fold
-        assert layout["canvas"] == 160  # the toy renderer's frames are 160 x 120: drawn at that resolution
-        shoot(browser, "label_page.png")
-        press(browser, "p")  # pause
-        wait_for(browser, lambda: "paused" in text(browser, "frame"))
-        held = frame_number(browser)
-        time.sleep(0.6)
-        assert frame_number(browser) == held and text(browser, "pause").startswith("Play")
-        press(browser, ".")
-        wait_for(browser, lambda: frame_number(browser) == min(held + 1, SEGMENT_LEN))
-        press(browser, ",")
-        press(browser, ",")
-        wait_for(browser, lambda: frame_number(browser) == max(min(held + 1, SEGMENT_LEN) - 2, 1))
-        browser.find_element("id", "slow").click()
-        wait_for(browser, lambda: "half speed" in text(browser, "frame"))
-        press(browser, " ")  # play again, at half speed
-        wait_for(browser, lambda: "paused" not in text(browser, "frame"))
-        seen = set()
-        deadline = time.time() + 5
-        while len(seen) < 2 and time.time() < deadline:
-            seen.add(frame_number(browser))
-            time.sleep(0.05)
-        assert len(seen) >= 2  # it plays
-    finally:
-        server.close()
+def test_the_page_fits_800_by_600_and_its_playback_pauses_slows_and_steps(run, browser):
+    run_dir, server, _ = run
+    browser.set_window_size(800, 600)
+    browser.get(server.url)
+    wait_for(browser, lambda: pair_ready(browser))
+    layout = browser.execute_script(
+        "const r = id => document.getElementById(id).getBoundingClientRect();"
+        "const buttons = [...document.querySelectorAll('button')].map(b => b.getBoundingClientRect());"
+        "return {width: innerWidth, height: innerHeight, scroll: document.documentElement.scrollWidth,"
+        " right: r('clip1').right, bottom: Math.max(...buttons.map(b => b.bottom)),"
+        " canvas: document.getElementById('clip0').width}")
+    assert layout["width"] <= 800 and layout["height"] <= 600
+    assert layout["scroll"] <= layout["width"] and layout["right"] <= layout["width"]  # no sideways scrolling
+    assert layout["bottom"] <= layout["height"]  # every button above the fold
+    assert layout["canvas"] == 160  # the toy renderer's frames are 160 x 120: drawn at that resolution
+    shoot(browser, "label_page.png")
+    press(browser, "p")  # pause
+    wait_for(browser, lambda: "paused" in text(browser, "frame"))
+    held = frame_number(browser)
+    time.sleep(0.6)
+    assert frame_number(browser) == held and text(browser, "pause").startswith("Play")
+    press(browser, ".")
+    wait_for(browser, lambda: frame_number(browser) == min(held + 1, SEGMENT_LEN))
+    press(browser, ",")
+    press(browser, ",")
+    wait_for(browser, lambda: frame_number(browser) == max(min(held + 1, SEGMENT_LEN) - 2, 1))
+    browser.find_element("id", "slow").click()
+    wait_for(browser, lambda: "half speed" in text(browser, "frame"))
+    press(browser, " ")  # play again, at half speed
+    wait_for(browser, lambda: "paused" not in text(browser, "frame"))
+    seen = set()
+    deadline = time.time() + 5
+    while len(seen) < 2 and time.time() < deadline:
+        seen.add(frame_number(browser))
+        time.sleep(0.05)
+    assert len(seen) >= 2  # it plays
 
 
-def test_the_page_says_when_a_session_is_taken_and_when_the_run_has_finished(tmp_path, browser):
-    run_dir = tmp_path / "run"
-    make_run(run_dir)
-    server = label_server.serve(str(run_dir), "127.0.0.1", 0)
-    try:
-        browser.set_window_size(800, 600)
-        browser.get(server.url)
-        wait_for(browser, lambda: pair_ready(browser))
-        for query in (1, 2, 3):
-            answer(server, query, "left")
-        press(browser, "1")  # the last pair (0), in the page
-        wait_for(browser, lambda: text(browser, "waiting").startswith(
-            "Session 0: 4 answers taken, the run is learning."))
-        shoot(browser, "label_page_session_done.png")
-        (run_dir / "final_model.pt").write_bytes(b"")  # what a run writes at its end
-        wait_for(browser, lambda: text(browser, "waiting").startswith("The run has finished"))
-        shoot(browser, "label_page_run_finished.png")
-    finally:
-        server.close()
+def test_the_page_says_when_a_session_is_taken_and_when_the_run_has_finished(run, browser):
+    run_dir, server, _ = run
+    browser.set_window_size(800, 600)
+    browser.get(server.url)
+    wait_for(browser, lambda: pair_ready(browser))
+    for query in (1, 2, 3):
+        answer(server, query, "left")
+    press(browser, "1")  # the last pair (0), in the page
+    wait_for(browser, lambda: text(browser, "waiting").startswith(
+        "Session 0: 4 answers taken, the run is learning."))
+    shoot(browser, "label_page_session_done.png")
+    (run_dir / "final_model.pt").write_bytes(b"")  # what a run writes at its end
+    wait_for(browser, lambda: text(browser, "waiting").startswith("The run has finished"))
+    shoot(browser, "label_page_run_finished.png")
 
 
 def test_a_person_labels_a_session_in_a_browser(tmp_path, browser):
