@@ -366,8 +366,8 @@ def test_train_reward_feeds_the_members_the_normalised_inputs_the_model_predicts
 def test_configuration_records_every_field_of_the_teacher(tmp_path):
     myopic = pebble.task_defaults("Pendulum-v1", "myopic")
     resolved = {name: getattr(myopic, name) for name in vars(myopic) if name.startswith("teacher_")}
-    assert resolved == {"teacher_beta": math.inf, "teacher_gamma": 0.9,
-                        "teacher_eps_mistake": 0.0, "teacher_eps_skip": 0.0, "teacher_eps_equal": 0.0}
+    assert resolved == {"teacher_beta": math.inf, "teacher_gamma": 0.9, "teacher_eps_mistake": 0.0,
+                        "teacher_eps_skip": 0.0, "teacher_eps_equal": 0.0, "teacher_bias": 0.0}
     assert pebble.task_defaults("Pendulum-v1", "skip").teacher_eps_skip == 0.1
     out = tmp_path / "myopic"
     result = run_pebble(out, *PENDULUM, "--total-timesteps", "500", "--teacher", "myopic", "--teacher-eps-mistake",
