@@ -725,6 +725,10 @@ RANGES = [  # (flags, test, rule); the teacher checks its own
     ("learning_rate alpha_lr reward_lr init_temperature", lambda v: v > 0, "> 0"),
     ("gamma tau", lambda v: 0 < v <= 1, "in (0, 1]"),
     ("label_smoothing", lambda v: 0 <= v < 1, "in [0, 1)"),
+    ("rime_alpha rime_beta_max rime_beta_min rime_min_epochs rime_warm_updates", lambda v: v >= 0,
+     ">= 0"),
+    ("rime_decay_epochs", lambda v: v >= 1, ">= 1"),
+    ("rime_flip_eps", lambda v: 0 < v < 1, "in (0, 1)"),
 ]
 
 

@@ -166,3 +166,14 @@ def test_a_tiny_run_reaches_every_phase(tmp_path):
     assert wrong > 0  # the mistake teacher at 0.3 made mistakes for the discriminator to find
     assert {"rime/trusted", "rime/flipped", "rime/dropped", "rime/precision", "rime/recall"} <= set(scalars(out))
     assert [int(row["step"]) for row in eval_rows(out)] == [1000, 2000, 3000]
+
+
+@pytest.mark.parametrize("flag, value, message", [
+    ("--rime-decay-epochs", "0", "--rime-decay-epochs must be >= 1, got 0"),
+    ("--rime-flip-eps", "1.5", "--rime-flip-eps must be in (0, 1), got 1.5"),
+    ("--rime-alpha", "-1", "--rime-alpha must be >= 0, got -1.0"),
+])
+def test_rime_s_flags_out_of_range_are_one_line_before_any_work(tmp_path, flag, value, message):
+    result = run_script("rime.py", tmp_path / "run", flag, value, timeout=120)
+    assert result.returncode == 2 and result.stderr == f"error: {message}\n"
+    assert not (tmp_path / "run").exists()

@@ -12,7 +12,7 @@ import pytest
 from benchmarks.script_size import ROOT, content_tokens, main_loop_lines, prose_characters
 
 SCRIPTS = ("pebble.py", "prefppo.py", "rime.py")
-SIZE_LIMIT = {"pebble.py": 7950, "prefppo.py": 8350, "rime.py": 9050}  # tokens today, rounded up: a regression guard
+SIZE_LIMIT = {"pebble.py": 7950, "prefppo.py": 8350, "rime.py": 9100}  # tokens today, rounded up: a regression guard
 # Plumbing that is the same code in both scripts (CleanRL's way: each script stands alone)
 # and reward learning, which is the same algorithm in both; restore differs by SAC's temperature tensor
 SHARED = ("DMCEnv", "MetaWorldSeeding", "env_kind", "make_env", "numpy_seeds", "episode_seed", "knn_distance",
@@ -68,12 +68,13 @@ def top_level(script: str) -> dict[str, str]:
 
 
 def test_rime_is_pebble_with_rime_s_parts_only():
-    """`diff pebble.py rime.py` shows RIME: its flags and Meta-World's settings, the discriminator in reward learning,
+    """`diff pebble.py rime.py` shows RIME: its flags, their ranges and Meta-World's settings, the discriminator in reward learning,
     the true label kept to score it, the warm start (and the kNN reward's extremes it needs), no critic reset; every
     other definition is pebble.py's, and the main block differs only in lines that name RIME's parts."""
     pebble, rime = top_level("pebble.py"), top_level("rime.py")
     changed = {name for name in pebble.keys() & rime.keys() if pebble[name] != rime[name]}
-    assert changed == {"Args", "PRESETS", "RunningMeanStd", "train_reward", "add_labels", "feedback_session"}
+    assert changed == {"Args", "PRESETS", "RANGES", "RunningMeanStd", "train_reward", "add_labels",
+                       "feedback_session"}
     assert pebble.keys() - rime.keys() == {"reset_critic"} and rime.keys() - pebble.keys() == {"Discriminator",
                                                                                                  "warm_start"}
     main = [text.split('if __name__ == "__main__":')[1].splitlines() for text in map(source, ("pebble.py", "rime.py"))]
