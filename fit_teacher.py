@@ -539,25 +539,23 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
         if not np.isfinite(threshold_scale).all():
             raise ValueError("threshold_scale must be finite")
 
-    result = fit_choice((rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0), level)
+    diff, sign = (rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0)
+    result = fit_choice(diff, sign, level)
     # gamma whose interval is its whole range: the labels do not tell; 1 is the simplest teacher
     low, high = result["ci"]["gamma"]
     result["gamma_unknown"] = low <= GAMMAS[0] and high >= 1
     if result["gamma_unknown"]:
         result["gamma"] = 1.0
-    # The side bias: 0 (the simplest teacher) when its interval holds 0, else beta, gamma and eps
-    # fitted again with it (their intervals are the bias-free fit's no more: not given)
-    biased = fit_bias((rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0), result,
-                      level)
+    # The side bias: 0 (the simplest teacher) when its interval holds 0 or the bias-free teacher
+    # describes the labels, else beta, gamma and eps fitted again with it (intervals not given)
+    biased = fit_bias(diff, sign, result, level)
     result["ci"]["bias"] = biased["ci"]
     result["bias"] = 0.0
-    if not biased["ci"][0] <= 0 <= biased["ci"][1] and check_fit(
-            result, (rewards1 - rewards0)[strict], np.where(y[strict] == 1.0, 1.0, -1.0)
-    )["p_value"] < CHECK_LEVEL:  # a bias that the bias-free teacher's labels would not show
+    result["check"] = check_fit(result, diff, sign)
+    if not biased["ci"][0] <= 0 <= biased["ci"][1] and result["check"]["p_value"] < CHECK_LEVEL:
         result |= {name: biased[name] for name in ("bias", "beta", "gamma", "eps_mistake")}
         result["ci"] |= {name: (None, None) for name in ("beta", "gamma", "eps_mistake")}
-    result["check"] = check_fit(result, (rewards1 - rewards0)[strict],
-                                np.where(y[strict] == 1.0, 1.0, -1.0))
+        result["check"] = check_fit(result, diff, sign)
     # The thresholds in eps units (each session's delta = eps * its scale) when every session has
     # its scale (eps <= 1, as SimTeacher's), else one delta for all sessions in return units.
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
