@@ -186,15 +186,17 @@ class LabelServer(http.server.ThreadingHTTPServer):
     def write_answers(self, number: int, answers: dict):
         sim_teacher.write_answers(self.run_dir, number, answers)
 
+    def newest(self) -> Session | None:
+        """The run's newest session, done or not (None before its first)."""
+        names = os.listdir(self.queries_dir) if os.path.isdir(self.queries_dir) else []
+        numbers = [int(match.group(1)) for match in map(SESSION_FILE.fullmatch, names) if match]
+        return self.session(max(numbers)) if numbers else None
+
     def current(self) -> Session | None:
         """The newest session if it is not done (not every query answered). The run waits at one
         session at a time, so every older session is done."""
-        names = os.listdir(self.queries_dir) if os.path.isdir(self.queries_dir) else []
-        numbers = [int(match.group(1)) for match in map(SESSION_FILE.fullmatch, names) if match]
-        if not numbers:
-            return None
-        session = self.session(max(numbers))
-        if len(self.read_answers(session.number)["answers"]) == session.n:
+        session = self.newest()
+        if session is None or len(self.read_answers(session.number)["answers"]) == session.n:
             return None
         return session
 
@@ -206,10 +208,8 @@ class LabelServer(http.server.ThreadingHTTPServer):
                  "run_finished": os.path.exists(os.path.join(self.run_dir, "final_model.pt"))}
         session = self.current()
         if session is None:  # the last session answered (the run learns from it), or none yet
-            names = os.listdir(self.queries_dir) if os.path.isdir(self.queries_dir) else []
-            numbers = [int(m.group(1)) for m in map(SESSION_FILE.fullmatch, names) if m]
-            if numbers:
-                done = self.session(max(numbers))
+            done = self.newest()
+            if done is not None:
                 state["done"] = {"session": done.number, "answers": done.n}
             return state
         answers = self.read_answers(session.number)
