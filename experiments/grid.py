@@ -40,7 +40,7 @@ from sim_teacher import TEACHERS  # noqa: E402
 from benchmarks.reference.edits import EDITS  # noqa: E402
 
 ALGORITHMS = ("pebble", "prefppo", "rime")
-IMPLEMENTATIONS = ("ours", "reference")  # reference: rll-research/BPref through benchmarks/reference/run.py
+IMPLEMENTATIONS = ("ours", "reference")  # reference: BPref (RIME's fork for rime) through benchmarks/reference/run.py
 REFERENCE_RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
 EDITS_RUNNER = ROOT / "benchmarks" / "reference" / "edits.py"
 # Flags the grid sets for each run; --flags must not set them too
@@ -54,7 +54,7 @@ class Grid:
     algorithms: tuple[str, ...] = ("pebble",)
     """pebble, prefppo and/or rime"""
     implementations: tuple[str, ...] = ("ours",)
-    """ours and/or reference (the reference code, set up by benchmarks/reference/setup.sh; PEBBLE, SAC, PrefPPO)"""
+    """ours and/or reference (the reference code: PEBBLE, SAC, PrefPPO; RIME's own code: RIME; benchmarks/reference)"""
     env_ids: tuple[str, ...] = ("walker-walk",)
     """tasks (any --env-id of the scripts)"""
     teachers: tuple[str, ...] = tuple(TEACHERS)
@@ -159,6 +159,12 @@ PRESETS = {
         "RIME and PEBBLE with the oracle teacher (what RIME costs when no label is wrong), as rime-mistake, 3 seeds",
         Grid(algorithms=("pebble", "rime"), teachers=("oracle",), budgets=("1000/100",), ground_truth=False,
              root="runs/rime", flags=CPU_PEBBLE)),
+    "rime-reference": (
+        "RIME's own code (benchmarks/reference/setup_rime.sh) on rime-mistake-0.3's setting and root, 3 seeds, for "
+        "report.py --parity beside rime.py's runs",
+        Grid(algorithms=("rime",), implementations=("reference",), teachers=("mistake",), budgets=("1000/100",),
+             seeds=(1, 2, 3), ground_truth=False, root="runs/rime-eps0.3",
+             flags=CPU_PEBBLE + " --teacher-eps-mistake 0.3")),
     "rime-mini-bpref": (
         "The mini B-Pref (six teachers + ground truth, 5 seeds) for RIME and for PEBBLE's default reward inputs",
         replace(MINI_BPREF, algorithms=("pebble", "rime"), root="runs/mini-bpref-rime")),
@@ -211,8 +217,9 @@ def check(grid: Grid) -> str | None:
         unfit = [algorithm for algorithm in grid.algorithms if f"{algorithm}.py" not in EDITS.get(edit, {})]
         if unfit:
             return f"--edits {edit!r} is not an edit of {unfit[0]}.py (known: {', '.join(EDITS)})"
-    if "reference" in grid.implementations and "prefppo" in grid.algorithms and grid.ground_truth:
-        return "--implementations reference runs PrefPPO, not PPO on the true reward: add --no-ground-truth"
+    for algorithm, what in (("prefppo", "PrefPPO, not PPO"), ("rime", "RIME's code, not SAC")):
+        if "reference" in grid.implementations and algorithm in grid.algorithms and grid.ground_truth:
+            return f"--implementations reference runs {what} on the true reward: add --no-ground-truth"
     if not (grid.ground_truth or grid.preference_runs):
         return "--no-ground-truth with --no-preference-runs leaves no run"
     for name in ("algorithms", "implementations", "env_ids", "teachers", "budgets", "samplers", "schedules", "seeds"):

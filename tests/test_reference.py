@@ -66,6 +66,24 @@ def test_a_tree_that_is_not_the_reference_is_refused(tmp_path):
     assert result.returncode == 1 and result.stderr.startswith("error: ") and len(result.stderr.splitlines()) == 1
 
 
+def test_rimes_tree_gets_only_the_utils_edits(tmp_path):
+    tree = tmp_path / "RIME"
+    tree.mkdir()
+    (tree / "train_RIME.py").write_text("import utils\n")
+    (tree / "reward_model.py").write_text("device = 'cuda:0'\n")  # set from --device: left alone
+    utils_edits = [edit for edit in patch.EDITS if edit[0] == "utils.py"]
+    (tree / "utils.py").write_text("import torch\n" + "".join(old for _, old, _, _ in utils_edits) + "x = 1\n")
+    done = patch.apply(tree)
+    assert len(done) == 2 and all(line.startswith("edited utils.py") for line in done)
+    text = (tree / "utils.py").read_text()
+    assert "except ImportError:\n    metaworld = None" in text and "set_default_validate_args(False)" in text
+    assert (tree / "reward_model.py").read_text() == "device = 'cuda:0'\n"
+    assert all(line.startswith("already edited") for line in patch.apply(tree))
+    (tree / "utils.py").unlink()
+    with pytest.raises(FileNotFoundError, match="a copy of RIME's code at 4ad03f4"):
+        patch.apply(tree)
+
+
 def settings(command: list[str]) -> dict:
     return dict(item.split("=", 1) for item in command[1:])
 
@@ -99,6 +117,49 @@ def test_our_flags_become_the_reference_settings_of_the_same_experiment():
     sac = reference_run.reference_command(args)
     assert sac[0] == "train_SAC.py" and "max_feedback" not in settings(sac)
     assert settings(sac)["num_unsup_steps"] == "9000"  # the same pre-training as ours
+
+
+def test_rime_flags_become_the_flags_of_rimes_walker_runs():
+    args = reference_run.Args(output_dir="x", algorithm="rime", seed=2, teacher="mistake", teacher_eps_mistake=0.3,
+                              total_timesteps=100000, hidden_dim=256, num_layers=2, batch_size=256,
+                              feedback_every=9000, max_feedback=1000, feedback_per_session=100)
+    assert reference_run.resolve(args) is None
+    command = reference_run.rime_command(args)
+    assert command[0] == "train_RIME.py"
+    got = dict(item.split("=", 1) for item in command[1:])
+    # run_parallel.sh's walker_walk line (lr 0.0005, 9000 unsupervised steps, reward_update 50, feed_type 1,
+    # least_reward_update 15, alpha 0.5, beta 3 -> 1) at the README's CPU scale
+    expected = {"--env": "walker_walk", "--seed": "2", "--device": "cpu", "--steps": "100001", "--unsup_steps": "9000",
+                "--num_interact": "9000", "--max_feedback": "1000", "--reward_batch": "100", "--reward_update": "50",
+                "--feed_type": "1", "--actor_lr": "0.0005", "--critic_lr": "0.0005", "--batch_size": "256",
+                "--actor_hidden_dim": "256", "--critic_hidden_dim": "256", "--actor_hidden_depth": "2",
+                "--critic_hidden_depth": "2", "--least_reward_update": "15", "--threshold_variance": "kl",
+                "--threshold_alpha": "0.5", "--threshold_beta_init": "3.0", "--threshold_beta_min": "1.0",
+                "--eps_mistake": "0.3", "--eps_skip": "0.0", "--eps_equal": "0.0", "--teacher_gamma": "1.0"}
+    assert got == expected
+    config = reference_run.our_config(args, command)
+    assert config["teacher_eps_mistake"] == 0.3 and config["rime_alpha"] == 0.5 and "num_envs" not in config
+    assert report.setting_of(config)[:3] == ("reference-rime", "walker-walk", "mistake(eps_mistake=0.3)")
+    for flags, error in (({"teacher": "stoc"}, "--teacher stoc: RIME's code has rational teachers only"),
+                         ({"eval_every": 5000}, "--eval-every 5000: RIME's code has 10000 only"),
+                         ({"rime_flip_eps": 0.01}, "--rime-flip-eps 0.01: RIME's code has 0.001 only"),
+                         ({"ground_truth_reward": True}, "--ground-truth-reward: only with --algorithm pebble"),
+                         ({"num_envs": 4}, "--num-envs is not a setting of rime")):
+        assert reference_run.resolve(reference_run.Args(output_dir="x", algorithm="rime", **flags)).startswith(error)
+    assert reference_run.resolve(reference_run.Args(output_dir="x", rime_alpha=1.0)) == "--rime-alpha is not a " \
+                                                                                       "setting of pebble"
+
+
+def test_rimes_results_are_read_back_from_its_own_layout(tmp_path):
+    logs = tmp_path / "bpref" / "RIME" / "walker_walk"
+    (logs / "test").mkdir(parents=True)
+    (logs / "train").mkdir()
+    (logs / "test" / "eval_RIME_mistake_0.3_seed_1.csv").write_text(
+        "episode,step,episode_reward,true_episode_reward,true_episode_success\n10,10000,-3.0,150.5,0\n")
+    (logs / "train" / "train_RIME_mistake_0.3_seed_1.csv").write_text("step,total_feedback\n10000,0\n11000,100\n")
+    rows = reference_run.converted_rows(tmp_path / "bpref", [30.0])
+    assert [(r["step"], r["episode_return"], r["feedback"], r["wall_time"]) for r in rows] == [(10000, 150.5, 100.0,
+                                                                                             30.0)]
 
 
 def test_prefppo_flags_become_the_reference_walker_script_flags(tmp_path):
@@ -194,6 +255,15 @@ def test_runner_without_the_reference_code_is_one_error_line(tmp_path):
     assert result.stderr.strip() == f"error: no reference code in {tmp_path / 'nothing'}: run " \
                                     "benchmarks/reference/setup.sh first"
     assert not (tmp_path / "out").exists()
+    (tmp_path / "ref" / ".venv" / "bin").mkdir(parents=True)
+    (tmp_path / "ref" / ".venv" / "bin" / "python").write_text("")
+    (tmp_path / "ref" / "BPref").mkdir()
+    (tmp_path / "ref" / "BPref" / "train_PEBBLE.py").write_text("")
+    result = subprocess.run([sys.executable, str(RUNNER), "--algorithm", "rime", "--output-dir", str(tmp_path / "out"),
+                             "--reference-dir", str(tmp_path / "ref")], capture_output=True, text=True, env=ENV)
+    assert result.returncode == 2
+    assert result.stderr.strip() == f"error: no RIME code in {tmp_path / 'ref'}: run " \
+                                    "benchmarks/reference/setup_rime.sh first"
 
 
 def dry_run(preset: str, root) -> tuple[list[list[str]], list[list[str]]]:
@@ -229,6 +299,13 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
     assert len(printed) == 3 and len(lines) == 6
     assert all(line[3:5] == ["--algorithm", "prefppo"] for line in printed)
     assert printed[0][printed[0].index("--total-timesteps") + 1] == "1000000"
+    refused = subprocess.run([sys.executable, str(ROOT / "experiments/grid.py"), "custom", "--implementations",
+                              "reference", "--algorithms", "rime", "--root", str(tmp_path / "h")],
+                             capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert refused.returncode == 2 and "runs RIME's code, not SAC on the true reward" in refused.stderr
+    lines, printed = dry_run("rime-reference", tmp_path / "r")
+    assert len(printed) == 3 == len(lines) and all(line[3:5] == ["--algorithm", "rime"] for line in printed)
+    assert printed[0][printed[0].index("--teacher-eps-mistake") + 1] == "0.3"
     lines, printed = dry_run("parity-pebble-cheetah", tmp_path / "c")
     assert len(printed) == 3 and len(lines) == 6
     assert all(line[line.index("--env-id") + 1] == "cheetah-run" for line in printed)

@@ -1,14 +1,17 @@
-"""Compatibility edits to a copy of the reference code (rll-research/BPref at REFERENCE_COMMIT), so that it runs on
-Python 3.11 with today's torch, numpy and MuJoCo. Each edit changes how the code reaches a library, never what the
-algorithm computes; why is in EDITS and in benchmarks/reference/README.md.
+"""Compatibility edits to a copy of the reference code (rll-research/BPref at REFERENCE_COMMIT), or of RIME's code
+(CJReinforce/RIME_ICML2024 at RIME_COMMIT, a fork of it), so that it runs on Python 3.11 with today's torch, numpy and
+MuJoCo. Each edit changes how the code reaches a library, never what the algorithm computes; why is in EDITS,
+RIME_EDITS and in benchmarks/reference/README.md.
 
     python benchmarks/reference/patch.py reference/BPref     # applies every edit once; a second call changes nothing
+    python benchmarks/reference/patch.py reference/RIME      # a tree with train_RIME.py gets RIME_EDITS
 """
 
 import sys
 from pathlib import Path
 
 REFERENCE_COMMIT = "f3ece2ecf04b5d11b276d9bbb19b8004c29429d1"
+RIME_COMMIT = "4ad03f4944e9e4a770bb4d8d7b0e07ea960b77f2"
 
 # (file, text in the reference, replacement, why it changes no algorithm)
 EDITS = [
@@ -36,15 +39,22 @@ EDITS = [
      "np.int was an alias of int, removed in numpy 1.24 (twice in the file)"),
 ]
 
+# RIME's fork: its reward model takes the device from --device, and its dmc2gym already has int(); the two utils.py
+# edits are the same as the reference's
+RIME_EDITS = [edit for edit in EDITS if edit[0] == "utils.py"]
+
 
 def apply(tree: Path) -> list[str]:
-    """Applies every edit of EDITS to `tree`; returns what it did, one line an edit. An edit already applied is
-    left as it is; a file where neither the original nor the edited text is found is an error."""
+    """Applies every edit of EDITS (RIME_EDITS where `tree` has train_RIME.py) to `tree`; returns what it did, one
+    line an edit. An edit already applied is left as it is; a file where neither the original nor the edited text is
+    found is an error."""
     done = []
-    for name, old, new, why in EDITS:
+    rime = (tree / "train_RIME.py").is_file()
+    for name, old, new, why in RIME_EDITS if rime else EDITS:
         path = tree / name
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: not found (is {tree} a copy of BPref at {REFERENCE_COMMIT[:7]}?)")
+            source = f"RIME's code at {RIME_COMMIT[:7]}" if rime else f"BPref at {REFERENCE_COMMIT[:7]}"
+            raise FileNotFoundError(f"{path}: not found (is {tree} a copy of {source}?)")
         text = path.read_text()
         if new in text:  # first: an edit's new text may contain its old text
             done.append(f"already edited {name}")

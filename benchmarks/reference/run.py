@@ -7,6 +7,7 @@ implementations alike (docs/parity.md):
         --batch-size 256 --output-dir runs/parity/reference__s3
     python benchmarks/reference/run.py ... --ground-truth-reward    # the reference's train_SAC.py
     python benchmarks/reference/run.py --algorithm prefppo --total-timesteps 1000000 ...   # its train_PrefPPO.py
+    python benchmarks/reference/run.py --algorithm rime --teacher mistake --teacher-eps-mistake 0.3 ...  # RIME's code
 
 The output directory gets config.json (pebble.py's fields, with "implementation": "reference" and the reference's
 command line), bpref/ (the reference's own files), eval.csv in pebble.py's columns (wall_time from this wrapper's
@@ -14,6 +15,11 @@ clock at each evaluation line; the reference records no std: nan) and, at the en
 reference's actor, critic and reward models as pebble.py's state dicts) and, in the last row, the final reward
 correlation measured by pebble.py's evaluate on those networks. The reference cannot resume: a run stopped part-way
 is started afresh by the grid.
+
+RIME (--algorithm rime, rime.py's flags): RIME's own code (CJReinforce/RIME_ICML2024, set up by setup_rime.sh), its
+train_RIME.py with the flags of its walker runs (run_parallel.sh); it is written as the reference is, and its results
+are read back the same way. Settings its code fixes (10 evaluation episodes every 10000 steps, segments of 50, 1000
+seed steps, the uniform schedule, a rational teacher) are refused when asked otherwise.
 
 PrefPPO (--algorithm prefppo, prefppo.py's flags): the reference evaluates no policy and saves none, so its eval.csv
 rows are the true returns of its stochastic training episodes, from its Monitor files: one row per wave of episodes
@@ -51,7 +57,13 @@ FEED_TYPES = {"uniform": 0, "disagreement": 1, "entropy": 2, "coverage": 3, "dis
               "entropy-coverage": 5}  # the reference's feed_type
 REWARD_SCHEDULES = {"uniform": (0, 1.0), "decay": (1, 2.0), "increase": (2, 0.5)}
 """schedule -> (the reference's reward_schedule, the factor its walker scripts apply to the per-session count)"""
-PEBBLE_ONLY = ("seed_steps", "batch_size")
+PEBBLE_ONLY = ("seed_steps", "batch_size")  # and rime
+RIME_ONLY = ("rime_alpha", "rime_beta_max", "rime_beta_min", "rime_decay_epochs", "rime_flip_eps", "rime_min_epochs",
+             "rime_warm_updates")
+RIME_FIXED = {"eval_every": 10000, "eval_episodes": 10, "segment_len": 50, "seed_steps": 1000, "schedule": "uniform",
+              "rime_decay_epochs": 60, "rime_flip_eps": 0.001, "rime_warm_updates": 5}
+"""what RIME's train_RIME.py fixes for DMC tasks (its config and k=60, tau=0.001, 5 warm-start updates per step)"""
+TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")
 PREFPPO_ONLY = ("num_envs", "num_steps", "minibatch_size", "gae_lambda", "update_epochs", "unsup_update_epochs",
                 "clip_coef", "ent_coef", "use_sde", "sde_freq")
 
@@ -63,14 +75,25 @@ class Args:
 
     output_dir: str
     """where the run's files go (must be empty or absent)"""
-    algorithm: Literal["pebble", "prefppo"] = "pebble"
-    """pebble: train_PEBBLE.py (train_SAC.py with --ground-truth-reward); prefppo: train_PrefPPO.py"""
+    algorithm: Literal["pebble", "prefppo", "rime"] = "pebble"
+    """pebble: train_PEBBLE.py (train_SAC.py with --ground-truth-reward); prefppo: train_PrefPPO.py; rime: RIME's
+    train_RIME.py"""
     env_id: str = "walker-walk"
     """a DMC task, domain-task (the reference's Meta-World needs MuJoCo 2.0)"""
     seed: int = 1
     """the reference's seed"""
     teacher: Literal["oracle", "stoc", "mistake", "skip", "equal", "myopic"] = "oracle"
     """simulated teacher: the reference's teacher_* settings of that name"""
+    teacher_beta: float | None = None
+    """override the teacher's beta (None: the named teacher's)"""
+    teacher_gamma: float | None = None
+    """override the teacher's gamma"""
+    teacher_eps_mistake: float | None = None
+    """override the teacher's eps_mistake"""
+    teacher_eps_skip: float | None = None
+    """override the teacher's eps_skip"""
+    teacher_eps_equal: float | None = None
+    """override the teacher's eps_equal"""
     sampler: Literal[
         "uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"
     ] = "disagreement"
@@ -119,6 +142,20 @@ class Args:
     """PrefPPO: gSDE exploration (--use-sde)"""
     sde_freq: int | None = None
     """PrefPPO: steps between gSDE noise draws (--sde-freq)"""
+    rime_alpha: float | None = None
+    """RIME: alpha of the lower bound (--threshold_alpha)"""
+    rime_beta_max: float | None = None
+    """RIME: beta at the first epoch (--threshold_beta_init)"""
+    rime_beta_min: float | None = None
+    """RIME: beta's floor (--threshold_beta_min)"""
+    rime_decay_epochs: int | None = None
+    """RIME: epochs of beta's decay (fixed: 60)"""
+    rime_flip_eps: float | None = None
+    """RIME: the upper bound's epsilon (fixed: 0.001)"""
+    rime_min_epochs: int | None = None
+    """RIME: epochs before the early stop (--least_reward_update)"""
+    rime_warm_updates: int | None = None
+    """RIME: warm-start updates per pre-training step (fixed: 5)"""
     reward_epochs: int | None = None
     """most reward epochs per session (reward_update)"""
     eval_every: int = 10000
@@ -137,7 +174,7 @@ def resolve(args: Args) -> str | None:
     """Every field left None from the algorithm's preset for the task and its script's defaults, as pebble.py and
     prefppo.py resolve them; the first flag the algorithm has no setting for, as an error line, or None."""
     module = importlib.import_module(args.algorithm)
-    other = PREFPPO_ONLY if args.algorithm == "pebble" else PEBBLE_ONLY
+    other = not_settings(args.algorithm)
     if given := [name for name in other if getattr(args, name) is not None]:
         return f"--{given[0].replace('_', '-')} is not a setting of {args.algorithm}"
     if args.algorithm == "prefppo" and args.ground_truth_reward:
@@ -146,17 +183,54 @@ def resolve(args: Args) -> str | None:
         return "--schedule: the reference's PrefPPO has the uniform schedule only"
     if args.algorithm == "prefppo" and args.sampler not in ("uniform", "disagreement", "entropy"):
         return "--sampler: the reference's PrefPPO has uniform, disagreement and entropy sampling only"
+    if args.algorithm == "rime" and args.ground_truth_reward:
+        return "--ground-truth-reward: only with --algorithm pebble (the reference's train_SAC.py)"
     defaults = module.task_defaults(args.env_id, args.teacher)  # the script's values for the task
     for field in fields(Args):
-        if getattr(args, field.name) is None and field.name not in other:
+        if getattr(args, field.name) is None and field.name not in other and not field.name.startswith("teacher_"):
             setattr(args, field.name, getattr(defaults, field.name))
+    if args.algorithm == "rime" and math.isfinite(teacher_of(args).beta):
+        return f"--teacher {args.teacher}: RIME's code has rational teachers only (beta = inf)"
+    for name, value in RIME_FIXED.items() if args.algorithm == "rime" else ():
+        if getattr(args, name) != value:
+            return f"--{name.replace('_', '-')} {getattr(args, name)}: RIME's code has {value} only"
     return None
+
+
+def not_settings(algorithm: str) -> tuple[str, ...]:
+    """Args fields that are no setting of this algorithm."""
+    return {"pebble": PREFPPO_ONLY + RIME_ONLY, "prefppo": PEBBLE_ONLY + RIME_ONLY, "rime": PREFPPO_ONLY}[algorithm]
+
+
+def teacher_of(args: Args):
+    """The named simulated teacher with the flags' overrides (the --teacher-* fields; None = the teacher's own)."""
+    overrides = {name: getattr(args, f"teacher_{name}") for name in TEACHER_FIELDS}
+    return make_teacher(args.teacher, **{name: value for name, value in overrides.items() if value is not None})
+
+
+def rime_command(args: Args) -> list[str]:
+    """RIME's train_RIME.py and its flags for rime.py's (its walker runs' flags in run_parallel.sh)."""
+    domain, task = args.env_id.split("-", 1)
+    teacher = teacher_of(args)
+    flags = {"--env": f"{domain}_{task.replace('-', '_')}", "--seed": args.seed,
+             "--device": "cuda" if args.cuda else "cpu", "--steps": args.total_timesteps + 1,
+             "--unsup_steps": args.unsup_steps, "--num_interact": args.feedback_every,
+             "--max_feedback": args.max_feedback, "--reward_batch": args.feedback_per_session,
+             "--reward_update": args.reward_epochs, "--feed_type": FEED_TYPES[args.sampler],
+             "--actor_lr": args.learning_rate, "--critic_lr": args.learning_rate, "--batch_size": args.batch_size,
+             "--actor_hidden_dim": args.hidden_dim, "--critic_hidden_dim": args.hidden_dim,
+             "--actor_hidden_depth": args.num_layers, "--critic_hidden_depth": args.num_layers,
+             "--least_reward_update": args.rime_min_epochs, "--threshold_variance": "kl",
+             "--threshold_alpha": args.rime_alpha, "--threshold_beta_init": args.rime_beta_max,
+             "--threshold_beta_min": args.rime_beta_min, "--eps_mistake": teacher.eps_mistake,
+             "--eps_skip": teacher.eps_skip, "--eps_equal": teacher.eps_equal, "--teacher_gamma": teacher.gamma}
+    return ["train_RIME.py", *[f"{flag}={value}" for flag, value in flags.items()]]
 
 
 def prefppo_command(args: Args, log_dir: Path) -> list[str]:
     """train_PrefPPO.py and its flags for prefppo.py's (its walker script's flags: run_PrefPPO.sh)."""
     domain, task = args.env_id.split("-", 1)
-    teacher = make_teacher(args.teacher)
+    teacher = teacher_of(args)
     flags = {"--env": f"{domain}_{task.replace('-', '_')}", "--seed": args.seed, "--tensorboard-log": f"{log_dir}/",
              "--n-envs": args.num_envs, "--n-steps": args.num_steps, "--lr": args.learning_rate,
              "--total-timesteps": args.total_timesteps, "--batch-size": args.minibatch_size,
@@ -185,7 +259,7 @@ def reference_command(args: Args) -> list[str]:
               f"eval_frequency={args.eval_every}", f"num_eval_episodes={args.eval_episodes}"]
     if args.ground_truth_reward:
         return ["train_SAC.py", *common]
-    teacher = make_teacher(args.teacher)
+    teacher = teacher_of(args)
     schedule, factor = REWARD_SCHEDULES[args.schedule]
     return ["train_PEBBLE.py", *common, f"num_interact={args.feedback_every}", f"max_feedback={args.max_feedback}",
             f"reward_batch={int(args.feedback_per_session * factor)}", f"reward_schedule={schedule}",
@@ -197,22 +271,24 @@ def reference_command(args: Args) -> list[str]:
 
 def our_config(args: Args, command: list[str]) -> dict:
     """config.json as pebble.py (prefppo.py) would write it for these flags, marked as the reference's run."""
-    other = PREFPPO_ONLY if args.algorithm == "pebble" else PEBBLE_ONLY
+    other = not_settings(args.algorithm)
     config = {key: value for key, value in asdict(args).items() if key not in ("reference_dir", "algorithm", *other)}
     if args.algorithm == "prefppo":
         config["episode_returns"] = "training"
-    teacher = make_teacher(args.teacher)
-    config |= {f"teacher_{name}": getattr(teacher, name) for name in ("beta", "gamma", "eps_mistake", "eps_skip",
-                                                                      "eps_equal")}
+    teacher = teacher_of(args)
+    config |= {f"teacher_{name}": getattr(teacher, name) for name in TEACHER_FIELDS}
     return config | {"implementation": "reference", "reference_command": command}
 
 
 def converted_rows(bpref_dir: Path, wall_times: list[float]) -> list[dict]:
     """The reference's eval.csv in pebble.py's eval.csv columns; the i-th evaluation gets wall_times[i] (nan where
     unknown)."""
-    def read(name):
+    def read(name):  # RIME's code: RIME/<env>/test/eval_*.csv and RIME/<env>/train/train_*.csv
+        path = bpref_dir / name
+        if not path.exists():
+            path = next(bpref_dir.glob(f"RIME/*/{'test' if name == 'eval.csv' else 'train'}/*.csv"), path)
         try:
-            with open(bpref_dir / name) as f:
+            with open(path) as f:
                 return list(csv.DictReader(f))
         except OSError:
             return []
@@ -341,6 +417,12 @@ def main(args: Args) -> int:
     if not (python.exists() and (tree / "train_PEBBLE.py").exists()):
         print(f"error: no reference code in {reference}: run benchmarks/reference/setup.sh first", file=sys.stderr)
         return 2
+    if args.algorithm == "rime":
+        tree = reference / "RIME"
+        if not (tree / "train_RIME.py").exists():
+            print(f"error: no RIME code in {reference}: run benchmarks/reference/setup_rime.sh first",
+                  file=sys.stderr)
+            return 2
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
     if tuple(args.env_id.split("-", 1)) not in suite.ALL_TASKS:
@@ -353,6 +435,9 @@ def main(args: Args) -> int:
     bpref = (out / "bpref").resolve()
     if args.algorithm == "prefppo":
         command = prefppo_command(args, bpref)
+    elif args.algorithm == "rime":  # it writes under its working directory: RIME/<env>/
+        command = rime_command(args)
+        bpref.mkdir()
     else:
         command = reference_command(args) + [f"hydra.run.dir={bpref}"]
     (out / "config.json").write_text(json.dumps(our_config(args, command), indent=2))
@@ -361,8 +446,11 @@ def main(args: Args) -> int:
     launch = command
     if args.algorithm == "prefppo":  # its r_hat against the true reward per rollout, as prefppo.py logs it
         launch = [str(HERE / "trace_prefppo.py"), "--trace-out", str((out / "rollouts.csv").resolve()), *command[1:]]
+    if args.algorithm == "rime":
+        launch = [str((tree / command[0]).resolve()), *command[1:]]
     print(f"reference: {python} {' '.join(launch)}", flush=True)
-    process = subprocess.Popen([str(python), *launch], cwd=tree, env=env, stdout=subprocess.PIPE,
+    cwd = bpref if args.algorithm == "rime" else tree
+    process = subprocess.Popen([str(python), *launch], cwd=cwd, env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.STDOUT, text=True)
     signal.signal(signal.SIGTERM, lambda signum, frame: process.terminate())  # a grid's stop: end the reference too
     try:
@@ -394,7 +482,7 @@ def main(args: Args) -> int:
         print(f"done: {len(rows)} waves of training episodes in {(time.time() - start) / 60:.1f} min; outputs in "
               f"{out}")
         return 0
-    model = final_model(bpref, args.total_timesteps + 1)
+    model = final_model(next(bpref.glob("RIME/*/mistake_*_seed_*"), bpref), args.total_timesteps + 1)
     if "reward_model" in model:
         rows = converted_rows(bpref, wall_times)
         rows[-1]["reward_correlation"] = final_reward_correlation(model, args)
