@@ -55,6 +55,9 @@ class Args:
     """reward-alignment plots per algorithm and task (0 = none): finished oracle runs first, then the others"""
     parity: str | None = None
     """also write the side-by-side of ours and the reference code (settings run by both) to this Markdown file"""
+    compare: tuple[str, str] | None = None
+    """NEW BASE: also set two algorithms side by side on every setting both ran (e.g. rime pebble): difference
+    NEW - BASE with its CI, curves in one plot, RIME's discriminator; written to OUT/compare_NEW_BASE.md"""
 
 
 @dataclass
@@ -236,8 +239,11 @@ def mixed_settings(runs: list[Run]) -> list[str]:
     for setting, configs in sorted(groups.items(), key=lambda item: sort_key(item[0])):
         differing = sorted(k for k in set().union(*configs) if k not in PER_RUN_FIELDS
                            and len({json.dumps(c.get(k)) for c in configs}) > 1)
+        absent = [k for k in differing if len({json.dumps(c[k]) for c in configs if k in c}) == 1]
         if differing:
-            notes.append(f"{' / '.join(setting)}: runs differ in {', '.join(differing)}")
+            notes.append(f"{' / '.join(setting)}: runs differ in {', '.join(differing)}"
+                         + (f" ({', '.join(absent)}: absent from some configurations, written by an older script)"
+                            if absent else ""))
     return notes
 
 
@@ -544,24 +550,26 @@ def pooled_differences(pairs: list[tuple[tuple, list[Run], list[Run]]], reps: in
     return pooled
 
 
-def verdict(row: dict) -> str:
+def verdict(row: dict, names: tuple[str, str] = ("ours", "reference")) -> str:
     """Within noise when the bootstrap CI of the difference holds 0 and Welch's p >= 0.05; not within noise when
-    neither does; inconclusive when they disagree (with few seeds the percentile bootstrap is too narrow)."""
+    neither does; inconclusive when they disagree (with few seeds the percentile bootstrap is too narrow). names:
+    how the two arms ("ours" and "reference" in the row's keys) are called."""
+    new, base = names
     point, low, high = row["difference"]
     interval = f"95% CI [{low:+.1f}, {high:+.1f}], Welch p = {row['welch_p']:.3f}"
-    side = f"ours is {'lower' if point < 0 else 'higher'} by {abs(point):.1f} " \
-           f"({abs(point) / abs(row['reference_final_mean']):.0%} of the reference's mean)"
+    side = f"{new} is {'lower' if point < 0 else 'higher'} by {abs(point):.1f} " \
+           f"({abs(point) / abs(row['reference_final_mean']):.0%} of {'the ' * (base == 'reference')}{base}'s mean)"
     if np.isnan(row["welch_p"]):  # welch_p: nan with fewer than 2 runs a side
         return f"inconclusive: {side} (a single run on a side: no test; more seeds needed)"
     zero_inside, significant = low <= 0 <= high, row["welch_p"] < 0.05
     if zero_inside and not significant:
-        return f"within noise: ours - reference = {point:+.1f}, {interval}"
+        return f"within noise: {new} - {base} = {point:+.1f}, {interval}"
     if not zero_inside and significant:
         return f"not within noise: {side}, {interval}"
     return f"inconclusive: {side}, {interval} (the bootstrap CI and Welch's test disagree: more seeds needed)"
 
 
-def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path) -> Path:
+def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path, prefix: str = "parity") -> Path:
     """Both implementations' learning curves of one setting: mean over seeds (thick) and each seed (thin)."""
     plt, fig, axes = plt_figure(1, 1, 7.5, 3.8)
     ax = axes[0, 0]
@@ -574,13 +582,68 @@ def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path) -> Path
     ax.set_xlabel("environment steps")
     ax.set_ylabel(group[0].metric.replace("_", " "))
     ax.legend(fontsize=8)
-    fig.suptitle(f"{setting[0]} on {setting[1]}, {' / '.join(setting[2:])}: mean (thick) and each seed (thin)",
+    fig.suptitle(f"{' vs '.join(arms) if prefix != 'parity' else setting[0]} on {setting[1]}, "
+                 f"{' / '.join(setting[2:])}\nmean (thick) and each seed (thin)",
                  fontsize=9)
     fig.tight_layout()
-    path = out / safe_file(f"parity_{'_'.join(setting)}.png")
+    path = out / safe_file(f"{prefix}_{'_'.join(setting)}.png")
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def compare_pairs(runs: list[Run], new: str, base: str) -> list[tuple[tuple, list[Run], list[Run]]]:
+    """(NEW's setting, its finished runs, BASE's finished runs) for every setting both algorithms ran."""
+    groups = defaultdict(list)
+    for run in runs:
+        if run.state == "finished":
+            groups[run.setting].append(run)
+    return [(setting, groups[setting], groups[(base, *setting[1:])]) for setting in sorted(groups, key=sort_key)
+            if setting[0] == new and (base, *setting[1:]) in groups]
+
+
+def discriminator(run: Run) -> dict | None:
+    """RIME's discriminator at the run's last feedback session (its label file's trusted, flipped, dropped,
+    precision and recall), or None for a run without them."""
+    files = sorted((run.path / "labels").glob("session_*.npz"))
+    if not files:
+        return None
+    with np.load(files[-1]) as data:
+        keys = ("trusted", "flipped", "dropped", "precision", "recall")
+        return {key: float(data[key]) for key in keys} if all(key in data.files for key in keys) else None
+
+
+def compare_markdown(rows: list[dict], figures: list[Path], pairs: list, names: tuple[str, str], target: Path,
+                     command: str, reps: int) -> str:
+    """Two algorithms side by side on every setting both ran (the --compare page)."""
+    new, base = names
+    lines = [f"# {new} against {base}", "",
+             f"Made by `{command}` from the finished runs. Final = the last evaluation's mean return; IQM with its 95% "
+             f"bootstrap CI (rliable, {reps} replications); difference = mean final return of {new} - {base}'s, 95% "
+             "percentile bootstrap CI with seeds resampled within each arm (with few seeds such intervals are "
+             "narrower than they should be: Welch's p is given beside it). Wall time: minutes per run at its last "
+             "evaluation.", ""]
+    for row, figure, (setting, new_runs, _) in zip(rows, figures, pairs):
+        lines += [f"## {row['task']}, teacher {row['teacher']}, budget {row['budget']}, {row['sampler']}, "
+                  f"{row['schedule']}", "", f"**Verdict: {verdict(row, names)}.**", ""]
+        lines += table(["", "seeds", "final (mean ± std)", "per seed", "mean over evaluations", "IQM [95% CI]",
+                        "final reward correlation", "wall time per run (min)"],
+                       [[name, row[f"{arm}_seeds"], f"{row[f'{arm}_final_mean']:.1f} ± {row[f'{arm}_final_std']:.1f}",
+                         row[f"{arm}_finals"], f"{row[f'{arm}_mean_over_evaluations']:.1f}",
+                         "{:.1f} [{:.1f}, {:.1f}]".format(*row[f"{arm}_iqm"]), fmt(row[f"{arm}_reward_correlation"]),
+                         f"{row[f'{arm}_wall_minutes']:.1f}"] for arm, name in zip(("ours", "reference"), names)])
+        point, low, high = row["difference"]
+        lines += ["", f"Difference {new} - {base}: {point:+.1f} [{low:+.1f}, {high:+.1f}]", ""]
+        records = [(r.config["seed"], d) for r in new_runs if (d := discriminator(r))]
+        if records:
+            lines += [f"{new}'s discriminator at the last feedback session (labels of D; precision and recall in "
+                      "finding the teacher's mistakes):", ""]
+            lines += table(["seed", "trusted", "flipped", "dropped", "precision", "recall"],
+                           [[seed, *(f"{d[k]:.0f}" for k in ("trusted", "flipped", "dropped")),
+                             f"{d['precision']:.2f}", f"{d['recall']:.2f}"] for seed, d in records])
+            lines.append("")
+        lines += [f"![{figure.stem}]({os.path.relpath(figure, target.parent)})", ""]
+    return "\n".join(lines)
 
 
 def safe_file(name: str) -> str:
@@ -821,6 +884,20 @@ def report(args: Args) -> Path:
         for row in pooled:
             print(f"parity: {row['algorithm']}, {row['settings']} settings pooled: {row['relative_difference']:+.1%} "
                   f"[{row['low']:+.1%}, {row['high']:+.1%}], p lower {row['p_lower']:.3f}")
+    if args.compare:
+        names = tuple(args.compare)
+        pairs = compare_pairs(runs, *names)
+        if not pairs:
+            raise ReportError(f"--compare {' '.join(names)}: no setting below {root} has finished runs of both")
+        rows = parity_rows(pairs, args.reps, args.seed)
+        figures = [parity_figure(setting, dict(zip(names, (a, b))), out, f"compare_{'_'.join(names)}")
+                   for setting, a, b in pairs]
+        target = out / safe_file(f"compare_{'_'.join(names)}.md")
+        command = shlex.join(["python", "experiments/report.py", *sys.argv[1:]])
+        target.write_text(compare_markdown(rows, figures, pairs, names, target, command, args.reps))
+        write_csv(out / safe_file(f"compare_{'_'.join(names)}.csv"), [flat(row) for row in rows])
+        for row in rows:
+            print(f"compare: {' / '.join(row[c] for c in SETTING[1:])}: {verdict(row, names)}")
     (out / "report.md").write_text("\n".join(lines))
     write_csv(out / "runs.csv", run_rows)
     write_csv(out / "aggregates.csv", [flat(row) for row in settings])

@@ -369,6 +369,35 @@ def test_report_sets_both_implementations_side_by_side_with_a_verdict(tmp_path):
     assert "(../parity/report/parity_pebble_walker-walk" in text
 
 
+def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
+    root = tmp_path / "rime"
+    for seed, final in enumerate([700, 720, 740], 1):
+        write_run(root, f"rime_{seed}", seed, [50, final], extra={"rime_alpha": 0.5})
+        (root / f"rime_{seed}" / "labels").mkdir()
+        for session in (1, 2):  # the last session's record is reported
+            np.savez(root / f"rime_{seed}" / "labels" / f"session_000{session}.npz", trusted=800,
+                     flipped=90 * (session - 1) + seed, dropped=110, precision=0.6, recall=0.4)
+    for seed, final in enumerate([100, 110, 120], 1):
+        write_run(root, f"pebble_{seed}", seed, [60, final])
+    write_run(root, "rime_oracle_1", 1, [50, 900], extra={"rime_alpha": 0.5, "max_feedback": 500})  # no twin
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+                             "--alignment-runs", "0", "--compare", "rime", "pebble"], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = (root / "report" / "compare_rime_pebble.md").read_text()
+    assert text.count("## walker-walk, teacher oracle") == 1  # the setting without a pebble twin is left out
+    assert "**Verdict: not within noise: rime is higher by 610.0 (555% of pebble's mean)" in text
+    assert "| rime | 1 2 3 | 720.0 ± 16.3 | 700 720 740 | 385.0 |" in text
+    assert "| pebble | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 85.0 |" in text
+    assert "| 2 | 800 | 92 | 110 | 0.60 | 0.40 |" in text
+    assert "compare: walker-walk / oracle / 1000/100 / disagreement / uniform: not within noise" in result.stdout
+    figure = root / "report" / "compare_rime_pebble_rime_walker-walk_oracle_1000-100_disagreement_uniform.png"
+    assert figure.read_bytes()[:4] == b"\x89PNG"
+    refused = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--compare", "rime",
+                              "prefppo"], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert refused.returncode != 0 and "--compare rime prefppo: no setting below" in refused.stderr
+
+
 def test_equal_arms_are_within_noise():
     ours, reference = np.array([500.0, 700.0, 600.0]), np.array([650.0, 550.0, 600.0])
     point, low, high = report.difference_ci(ours, reference, 4000, 0)
