@@ -161,7 +161,7 @@ PRESETS = {
              root="runs/rime", flags=CPU_PEBBLE)),
     "rime-reference": (
         "RIME's own code (benchmarks/reference/setup_rime.sh) on rime-mistake-0.3's setting and root, 3 seeds, for "
-        "report.py --parity beside rime.py's runs",
+        "report.py --compare rime reference-rime",
         Grid(algorithms=("rime",), implementations=("reference",), teachers=("mistake",), budgets=("1000/100",),
              seeds=(1, 2, 3), ground_truth=False, root="runs/rime-eps0.3",
              flags=CPU_PEBBLE + " --teacher-eps-mistake 0.3")),
