@@ -464,11 +464,18 @@ def training_rows(run: Run) -> list[dict]:
     time and final reward correlation."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    events = EventAccumulator(str(run.path), size_guidance={"scalars": 0})
-    events.Reload()  # a resumed run's repeated steps are dropped (purge_orphaned_data)
+    # one events file per process: a resumed run's file logs again the steps after its checkpoint, which replace
+    # those of the files written before it
+    scalars = []
+    for path in sorted(run.path.glob("events.out.tfevents.*"), key=lambda path: path.stat().st_mtime_ns):
+        events = EventAccumulator(str(path), size_guidance={"scalars": 0})
+        events.Reload()
+        if "charts/episodic_return" in events.Tags()["scalars"]:
+            new = [(event.step, event.value) for event in events.Scalars("charts/episodic_return")]
+            scalars = [(step, value) for step, value in scalars if step < new[0][0]] + new
     waves = defaultdict(list)
-    for event in events.Scalars("charts/episodic_return"):
-        waves[event.step].append(event.value)
+    for step, value in scalars:
+        waves[step].append(value)
     rows = [{"step": step, run.metric: float(np.mean(values)), "wall_time": float("nan"),
              "reward_correlation": float("nan")} for step, values in sorted(waves.items())]
     rows[-1] |= {key: run.rows[-1][key] for key in ("wall_time", "reward_correlation")}

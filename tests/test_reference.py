@@ -528,6 +528,10 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
     prefppo = {"num_envs": 2, "total_timesteps": 5000}
     for seed, (first, last) in enumerate(((10.0, 30.0), (20.0, 50.0)), 1):
         write_run(root, f"ours_{seed}", seed, [999.0, 999.0], extra=prefppo)  # evaluations: not compared
+        if seed == 1:  # a process killed after step 4000: its run resumed from step 0, whose file replaces this one
+            killed = SummaryWriter(str(root / "ours_1"), filename_suffix=".killed")
+            killed.add_scalar("charts/episodic_return", 500.0, 4000)
+            killed.close()
         writer = SummaryWriter(str(root / f"ours_{seed}"))
         for step, value in ((2000, first), (2000, first + 2), (4000, last), (4000, last + 2)):
             writer.add_scalar("charts/episodic_return", value, step)
