@@ -357,7 +357,7 @@ def load_final_model(run: Run) -> tuple:
     actor = build(module.Actor, obs_dim, action_dim, config)
     actor.load_state_dict(saved["actor"])
     reward_model = build(module.RewardEnsemble, obs_dim, action_dim, config, size=config["reward_ensemble_size"])
-    # a run from before --reward-input-norm saved no input normaliser: its inputs were raw (the identity)
+    # a run of an older script saved no input normaliser: its inputs were raw (the identity)
     raw_inputs = {key: value for key, value in reward_model.state_dict().items() if key.startswith("input_")}
     reward_model.load_state_dict(raw_inputs | saved["reward_model"])
     obs_stats = None

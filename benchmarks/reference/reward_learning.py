@@ -6,7 +6,7 @@ Several initialisation seeds a side; a table on stdout.
 
     python benchmarks/reference/reward_learning.py runs/parity/ours/pebble__walker-walk__oracle__..._s1 --sessions 5
 
---normalized-inputs adds ours with --reward-input-norm's normaliser (RewardEnsemble.set_input_stats: observations
+--normalized-inputs adds ours with the scripts' input normaliser (RewardEnsemble.set_input_stats: observations
 centred and scaled by the training segments' states, clipped to +-10, as the reference's PrefPPO fed VecNormalize'd
 ones to its reward network), to measure that conditioning difference (docs/differences.md, item 17).
 """
@@ -54,8 +54,8 @@ def judged(reward_fn, data: dict) -> tuple[float, float]:
 
 
 def ours(data: dict, seed: int, normalize: bool = False) -> dict:
-    """pebble.py's reward learning; normalize: as with --reward-input-norm (D's states standardise the
-    observations)."""
+    """pebble.py's reward learning; normalize: as the scripts do (D's states standardise the observations), else
+    raw inputs as the reference PEBBLE's."""
     sys.path.insert(0, str(ROOT))
     import pebble
 

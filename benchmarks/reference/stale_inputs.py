@@ -3,7 +3,7 @@ learning, measured offline on one of our prefppo.py runs: its labels and its que
 checkpoint) are normalised three ways, a reward model is trained on the first sessions and judged on the later ones
 (Pearson correlation of the learned with the true per-step reward, share of later pairs in the teacher's order):
 
-- ours: prefppo.py's --reward-input-norm, the labelled states' statistics (RewardEnsemble.set_input_stats);
+- ours: prefppo.py's input normaliser, the labelled states' statistics (RewardEnsemble.set_input_stats);
 - moving, as stored (the reference's way): each step normalised by the running statistics of every observation seen
   up to its own step, as the reference stored it in its query pool, while the learned reward is used (and judged) on
   observations normalised by the statistics of the last training session's step;
@@ -62,7 +62,7 @@ def inputs(sessions: list[dict], side: int, obs_fn) -> np.ndarray:
 def learn_and_judge(train: tuple, later: tuple, y: np.ndarray, later_y: np.ndarray, later_rewards: np.ndarray,
                     seed: int, epochs: int, obs_dim: int | None = None) -> dict:
     """prefppo.py's reward learning on train (inputs0, inputs1) until 97% accuracy; obs_dim: set its input
-    statistics from the training states first (--reward-input-norm)."""
+    statistics from the training states first (as prefppo.py does)."""
     torch.manual_seed(seed)
     model = prefppo.RewardEnsemble(train[0].shape[-1], 0, 3)
     preferences = {"inputs0": torch.as_tensor(train[0]), "inputs1": torch.as_tensor(train[1]),
