@@ -434,14 +434,19 @@ def alignment_figure(run: Run, root: Path, out: Path) -> tuple[Path, float]:
 REFERENCE_PREFIX = "reference-"
 
 
-def parity_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
-    """(our setting, our finished runs, the reference's finished runs) for every setting both implementations ran.
-    Where the reference's rows are training episodes (its PrefPPO evaluates no policy), both arms' runs come back
-    with training-episode rows (training_rows), so that both are measured alike."""
+def finished_by_setting(runs: list[Run]) -> dict[tuple, list[Run]]:
     groups = defaultdict(list)
     for run in runs:
         if run.state == "finished":
             groups[run.setting].append(run)
+    return groups
+
+
+def parity_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
+    """(our setting, our finished runs, the reference's finished runs) for every setting both implementations ran.
+    Where the reference's rows are training episodes (its PrefPPO evaluates no policy), both arms' runs come back
+    with training-episode rows (training_rows), so that both are measured alike."""
+    groups = finished_by_setting(runs)
     pairs = []
     for setting in sorted(groups, key=sort_key):
         twin = (REFERENCE_PREFIX + setting[0], *setting[1:])
@@ -601,10 +606,7 @@ def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path, prefix:
 
 def compare_pairs(runs: list[Run], new: str, base: str) -> list[tuple[tuple, list[Run], list[Run]]]:
     """(NEW's setting, its finished runs, BASE's finished runs) for every setting both algorithms ran."""
-    groups = defaultdict(list)
-    for run in runs:
-        if run.state == "finished":
-            groups[run.setting].append(run)
+    groups = finished_by_setting(runs)
     return [(setting, groups[setting], groups[(base, *setting[1:])]) for setting in sorted(groups, key=sort_key)
             if setting[0] == new and (base, *setting[1:]) in groups]
 
