@@ -110,6 +110,10 @@ MINI_BPREF = Grid(
     # at most 20 reward epochs per session (paper: 50); the rest as the walker-walk preset (docs/experiments.md)
     flags="--total-timesteps 40000 --hidden-dim 128 --num-layers 2 --batch-size 128 --unsup-steps 4000 "
           "--feedback-every 3500 --reward-epochs 20 --eval-every 5000 --eval-episodes 10 --checkpoint-every 10000")
+# Issue 45: pilots of SAC on the true reward that choose each new task's CPU scale (docs/results.md): the most
+# steps that fit about 75 minutes on one core at walker-walk's CPU network sizes; curves read at every 10K
+CPU_PILOT = ("--total-timesteps 250000 --hidden-dim 256 --num-layers 2 --batch-size 256 --eval-every 10000 "
+             "--eval-episodes 10 --checkpoint-every 25000")
 PRESETS = {
     "custom": ("a grid of your own (defaults: PEBBLE, walker-walk, six teachers, the task's budget, 3 seeds)", Grid()),
     "mini-bpref": ("PEBBLE on walker-walk at CPU size: six teachers + ground truth, 5 seeds, about 1.5 h on 2 cores "
@@ -118,6 +122,11 @@ PRESETS = {
         "README's CPU learning benchmark: PEBBLE (oracle, 1000 labels) and SAC on the true reward, walker-walk 100K "
         "steps, 256 x 2, 3 seeds",
         Grid(teachers=("oracle",), budgets=("1000/100",), root="runs/learning-cpu-pebble", flags=CPU_PEBBLE)),
+    "pilot-sac": (
+        "SAC on the true reward, one seed, 250K steps at 256 x 2, on quadruped-walk, button-press and sweep-into: the "
+        "pilots that chose each task's CPU scale",
+        Grid(env_ids=("quadruped-walk", "button-press", "sweep-into"), preference_runs=False, seeds=(1,),
+             root="runs/pilot-sac", flags=CPU_PILOT)),
     # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
     "parity-pebble": (
         "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",
