@@ -5,10 +5,12 @@ import concurrent.futures
 import hashlib
 import http.server
 import io
+import ipaddress
 import json
 import math
 import os
 import re
+import signal
 import socket
 import sys
 import threading
@@ -41,6 +43,7 @@ SESSION_FILE = re.compile(r"session_(\d{4,})\.npz")
 CLIP_URL = re.compile(r"/clips/(\d{1,6})/(\d{1,9})/([01])\.jpg")
 MAX_BODY = 10_000  # bytes of a POST's JSON
 METHODS = ("GET", "POST")  # every other method: 405
+IDLE_TIMEOUT = 30.0  # seconds a connection may wait for a request, or a reply to go out
 
 
 class RequestError(Exception):
@@ -103,6 +106,25 @@ def sprite_sheet(frames: list) -> bytes:
     return data.getvalue()
 
 
+def is_local_address(name: str) -> bool:
+    """An IP address (IPv6 in brackets) of this machine: a socket can be bound to it (nothing is
+    sent), which an address of another machine refuses."""
+    try:
+        if name.startswith("[") and name.endswith("]"):
+            address = ipaddress.IPv6Address(name[1:-1])
+        else:
+            address = ipaddress.IPv4Address(name)
+    except ValueError:
+        return False
+    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as probe:
+            probe.bind((str(address), 0))
+    except OSError:
+        return False
+    return True
+
+
 class LabelServer(http.server.ThreadingHTTPServer):
     """The page, the session's state and its clips; answers go to the answers file under a lock.
     Clips render on one worker thread (one environment, one OpenGL context), when first asked."""
@@ -130,13 +152,21 @@ class LabelServer(http.server.ThreadingHTTPServer):
         self.render_error = None  # the first failure to render: kept (OpenGL is not tried twice)
         self.closed = False
         # the Host header must name this server (a page elsewhere that rebinds a name of its own to
-        # 127.0.0.1 sends its own name): 127.0.0.1, localhost, [::1], or what --host says
+        # 127.0.0.1 sends its own name): 127.0.0.1, localhost, [::1], or what --host says; on every
+        # interface, also this machine's names and addresses
         self.hosts = {"127.0.0.1", "localhost", "[::1]", f"[{host}]" if ":" in host else host}
         self.address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
         super().__init__((host, port), Handler)
+        self.everywhere = self.server_address[0] in ("0.0.0.0", "::")
+        if self.everywhere:
+            self.hosts |= {socket.gethostname().lower(), socket.getfqdn().lower()}
         self.url_file = sim_teacher.page_url_path(run_dir)
         os.makedirs(os.path.dirname(self.url_file), exist_ok=True)
         sim_teacher.save_file(self.url_file, self.url.encode())
+
+    def names_this_server(self, name: str) -> bool:
+        """A Host header's name (without its port) is one of this server's."""
+        return name.lower() in self.hosts or (self.everywhere and is_local_address(name))
 
     def handle_error(self, request, client_address):
         if not isinstance(sys.exc_info()[1], ConnectionError):  # a page closed mid-reply: quiet
@@ -316,12 +346,13 @@ class Handler(http.server.BaseHTTPRequestHandler):
     """Routes by exact path: nothing in a URL is ever used as a file path."""
 
     server: LabelServer
+    timeout = IDLE_TIMEOUT  # an idle connection is closed (else it holds its thread while open)
 
     def allowed(self) -> bool:
         """The Host header names this server, else a 403 goes out."""
         host = self.headers.get("Host", "")
         name = host.rsplit(":", 1)[0] if re.fullmatch(r".*:\d+", host) else host
-        if name.lower() in self.server.hosts:
+        if self.server.names_this_server(name):
             return True
         self.send_json(403, {"error": f"Host {host!r} is not this server's address (open "
                                       f"{self.server.url})"})
@@ -437,6 +468,10 @@ def serve(run_dir: str, host: str = "127.0.0.1", port: int = 8000) -> LabelServe
 
 def main():
     args = tyro.cli(Args)
+    stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    for stop in stops[1:]:  # stop as Ctrl+C does, so that page_url.txt is removed
+        signal.signal(stop, signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_BLOCK, stops)  # held until the server can be closed
     try:
         server = serve(args.run_dir, args.host, args.port)
     except FileNotFoundError as error:
@@ -444,9 +479,14 @@ def main():
     except OSError as error:
         pebble.fail(f"cannot listen on {args.host}:{args.port}: {error.strerror} (choose another "
                     "--port)")
-    print(f"labelling page of {args.run_dir}: {server.url} (Ctrl+C stops it; every answer is "
-          "already on disk)", flush=True)
     try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, stops)
+        print(f"labelling page of {args.run_dir}: {server.url} (Ctrl+C stops it; every answer is "
+              "already on disk)", flush=True)
+        if server.everywhere:
+            port = server.server_address[1]
+            print(f"from another machine: http://{socket.gethostname()}:{port}/ (or this machine's "
+                  "address)", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         pass

@@ -325,6 +325,53 @@ def test_a_host_header_that_does_not_name_the_server_is_a_403(run, host):
         assert status == 200, good
 
 
+def this_machine_s_address() -> str | None:
+    """A non-loopback IPv4 address of this machine, or None: the source address of the route to a
+    documentation address (connect() on a UDP socket picks it and sends nothing)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(("203.0.113.1", 9))
+        except OSError:  # no route
+            return None
+        address = probe.getsockname()[0]
+    return None if address.startswith("127.") else address
+
+
+def test_on_every_interface_the_machine_s_own_names_and_addresses_are_its_host(tmp_path):
+    """--host 0.0.0.0: a browser elsewhere sends this machine's name or address as Host. Every
+    request goes to 127.0.0.1, only its Host header differs."""
+    import socket
+
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    server = label_server.serve(str(run_dir), "0.0.0.0", 0)
+    port = server.server_address[1]
+    loopback = type("Address", (), {"server_address": ("127.0.0.1", port)})
+    ours = [socket.gethostname(), f"{socket.gethostname().upper()}:{port}", socket.getfqdn(),
+            f"127.0.0.2:{port}"]  # all of 127/8 is this machine, though not named 127.0.0.1
+    ours += [f"{address}:{port}" for address in [this_machine_s_address()] if address]
+    foreign = ["evil.example", f"{socket.gethostname()}.evil.example:{port}", f"203.0.113.9:{port}",
+               "[2001:db8::1]", "0x7f000001"]
+    try:
+        for host in ours + foreign:
+            status, _, reply = raw_request(loopback, ["GET /api/state HTTP/1.1", f"Host: {host}",
+                                                      "Connection: close"])
+            assert status == (200 if host in ours else 403), (host, reply)
+    finally:
+        server.close()
+
+
+def test_bound_to_one_address_no_other_host_is_accepted(run):
+    """127.0.0.1: its own forms only (127.0.0.2 reaches this machine but not this socket)."""
+    port = run[1].server_address[1]
+    for host in (f"127.0.0.2:{port}", "203.0.113.9"):
+        status, _, _ = raw_request(run[1], ["GET /api/state HTTP/1.1", f"Host: {host}",
+                                            "Connection: close"])
+        assert status == 403, host
+
+
 @pytest.mark.parametrize("method", ["HEAD", "PUT", "DELETE", "PATCH", "OPTIONS", "TRACE", "FOO"])
 def test_a_method_other_than_get_and_post_is_a_json_405(run, method):
     status, headers, reply = raw_request(run[1], [f"{method} /api/state HTTP/1.1", "Host: 127.0.0.1",
@@ -367,6 +414,63 @@ def test_the_server_writes_its_address_in_the_run_while_it_serves(tmp_path):
     finally:
         server.close()
     assert not (run_dir / "queries" / "page_url.txt").exists()
+
+
+def start_server_process(run_dir, **popen) -> subprocess.Popen:
+    """label_server.py RUN_DIR --port 0 as a user starts it, once it serves (page_url.txt)."""
+    process = subprocess.Popen([sys.executable, "label_server.py", str(run_dir), "--port", "0"],
+                               cwd=ROOT, env=ENV, stderr=subprocess.PIPE, text=True, **popen)
+    deadline = time.time() + 120
+    while not (run_dir / "queries" / "page_url.txt").exists():
+        assert process.poll() is None and time.time() < deadline, process.communicate()
+        time.sleep(0.1)
+    return process
+
+
+@pytest.mark.parametrize("stop", ["SIGTERM", "SIGINT", "SIGHUP"])
+def test_a_server_stopped_by_a_signal_removes_its_address_from_the_run(tmp_path, stop):
+    """Else the run prints an address where nothing serves."""
+    import signal
+
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    process = start_server_process(run_dir, stdout=subprocess.DEVNULL)
+    process.send_signal(getattr(signal, stop))
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 0 and "Traceback" not in stderr, stderr
+    assert not (run_dir / "queries" / "page_url.txt").exists()
+
+
+def test_a_server_that_fails_after_it_started_removes_its_address_from_the_run(tmp_path):
+    """Its first line goes to a closed pipe (as to `| head -0`): a BrokenPipeError, after the server
+    started and wrote page_url.txt, and before it waits."""
+    run_dir = tmp_path / "run"
+    make_run(run_dir)
+    process = subprocess.Popen([sys.executable, "label_server.py", str(run_dir), "--port", "0"],
+                               cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+    process.stdout.close()  # long before it prints (it imports torch first)
+    stderr = process.communicate(timeout=120)[1]
+    assert process.returncode != 0 and "BrokenPipeError" in stderr, stderr
+    assert not (run_dir / "queries" / "page_url.txt").exists()
+
+
+def test_an_idle_connection_is_closed_after_the_timeout(run, monkeypatch):
+    """Connections that send nothing, or half a request, are closed (each holds a thread while it
+    is open); the server goes on serving."""
+    import socket
+
+    assert 0 < label_server.Handler.timeout <= 60  # idle for a minute at most
+    monkeypatch.setattr(label_server.Handler, "timeout", 0.5)  # shortened for the test
+    server = run[1]
+    idle = [socket.create_connection(server.server_address[:2], timeout=10) for _ in range(20)]
+    idle[0].sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # no end of headers
+    start = time.time()
+    for connection in idle:
+        with connection:
+            assert connection.recv(65536) == b""  # closed by the server (a timeout raises)
+    assert time.time() - start < 5
+    assert request(server, "GET", "/api/state")[0] == 200
 
 
 def test_an_ipv6_host_is_served():
