@@ -1,6 +1,6 @@
 # RIME (Cheng et al. 2024): PEBBLE robust to wrong labels, on B-Pref's teachers; docs/rime.md
 import argparse
-import contextlib
+import csv
 import io
 import json
 import math
@@ -127,7 +127,7 @@ class Args:
     query_recent_episodes: int = 100
     """segments come from the last N complete episodes (0: all)"""
     critic_reset_updates: int = 100
-    """SAC updates after the first reward update (RIME: no critic reset)"""
+    """SAC updates after the first reward update (RIME's code: reset_update, no reset)"""
     rime_alpha: float = 0.5
     """alpha of the lower bound -ln(rho) + alpha rho + min(beta_t var_KL, 3)"""
     rime_beta_max: float = 3.0
@@ -154,6 +154,10 @@ PRESETS = {
                       rime_min_epochs=5),
     "gym": dict(hidden_dim=256, batch_size=256, learning_rate=3e-4),
 }
+
+
+# The README's CPU scale, named by Console's note
+CPU_SCALE = "--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --batch-size 256"
 
 
 # Environments
@@ -534,6 +538,7 @@ class Discriminator:
         delta = kl.mean().item() - self.mean
         m2 = self.var * self.count + kl.var(unbiased=False).item() * n
         m2 += delta**2 * self.count * n / total
+        # RIME's code (RunningMeanStd, mode 'fixed'): EMAs of rho and mean, pooled var
         self.rho += 0.1 * (kl.max().item() - self.rho)
         self.mean += 0.1 * delta
         self.var = m2 / total
@@ -545,7 +550,9 @@ def train_reward(reward_model, optimizer, preferences, discriminator, args):
     inputs0 = reward_model.normalize(preferences["inputs0"])
     inputs1 = reward_model.normalize(preferences["inputs1"])
     y = preferences["y"]
-    warmup = max(1, round(args.max_feedback / args.feedback_per_session * args.rime_min_epochs / 3))
+    # RIME's code: warm-up over a third of sessions x --rime-min-epochs
+    sessions = args.max_feedback / args.feedback_per_session
+    warmup = max(1, round(sessions * args.rime_min_epochs / 3))
     for epoch in range(args.reward_epochs):
         for group in optimizer.param_groups:  # RIME's code: a linear warm-up
             group["lr"] = args.reward_lr * min(1.0, discriminator.epochs / warmup)
@@ -593,9 +600,10 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
         with torch.no_grad():
             probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))
         labelled = None
+        features = None
         if sampler.endswith("coverage"):
             labelled = coverage_features(preferences["inputs0"], preferences["inputs1"], obs_dim)
-        features = coverage_features(inputs0, inputs1, obs_dim)
+            features = coverage_features(inputs0, inputs1, obs_dim)
         probs = probs[..., 0].cpu().numpy()
         chosen = select(sampler, size, probs=probs, rng=rng, labeled_features=labelled,
                         features=features)
@@ -611,6 +619,13 @@ def add_labels(preferences, inputs0, inputs1, y, keep, truth=None):
         preferences[key] = torch.cat([preferences[key], new])
 
 
+def session_due(args, step, progress, session_sizes, episodes):
+    """Algorithm 3, line 9 (with labels left and a segment to show)."""
+    return (not args.ground_truth_reward and step >= progress.next_feedback_step
+            and progress.sessions_done < len(session_sizes)
+            and any(len(episode[0]) >= args.segment_len for episode in episodes))
+
+
 def feedback_session(args, step, progress, size, episodes, preferences, reward_model,
                      reward_optimizer, discriminator, teacher, rng, writer, episode_len):
     """Algorithm 3, lines 9-13: queries, labels, D, reward learning. Returns |D|."""
@@ -623,7 +638,6 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
     y, keep = teacher.label(segments["rewards0"], segments["rewards1"], segments | {"step": step})
     record = dict(step=step, y=y, keep=keep,
                   threshold_scale=mean_return * args.segment_len / episode_len, **segments)
-    save_labels(args.output_dir, progress.sessions_done, **record)
     progress.feedback_used += size
     progress.sessions_done += 1
     progress.next_feedback_step = step + args.feedback_every
@@ -632,7 +646,8 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
     writer.add_scalar("feedback/labels", progress.feedback_used, step)
     writer.add_scalar("feedback/skipped", (~keep).sum(), step)
     if len(preferences["y"]) == 0:  # all skipped so far
-        print(f"step {step}: all {size} queries skipped, the reward model stays as it is")
+        save_labels(args.output_dir, progress.sessions_done - 1, **record)
+        say(f"step {step}: all {size} queries skipped, the reward model stays as it is")
         return 0
     states = torch.cat([preferences["inputs0"], preferences["inputs1"]], 1)
     reward_model.set_input_stats(states[..., : segments["obs0"].shape[-1]].flatten(0, 1))
@@ -651,8 +666,8 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
         writer.add_scalar(f"rime/{name}", value, step)
     writer.add_scalar("reward/loss", loss, step)
     writer.add_scalar("reward/accuracy", accuracy, step)
-    print(f"step {step}: feedback session {progress.sessions_done}: reward model trained on "
-          f"{len(preferences['y'])} labels, accuracy {accuracy:.3f}")
+    say(f"step {step}: feedback session {progress.sessions_done}: reward model trained on "
+        f"{len(preferences['y'])} labels, accuracy {accuracy:.3f}")
     return len(preferences["y"])
 
 
@@ -695,21 +710,29 @@ def evaluation(args, step, progress, policy, reward_model, env, writer, device):
     result = evaluate(policy, learned, env, seeds, device)
     if args.capture_video and env.recording:
         env.stop_recording()
-    wall_time = round(time.time() - progress.start_time, 1)
     progress.eval_rows.append({"step": step, **result, "feedback": progress.feedback_used,
-                               "wall_time": wall_time})
-    lines = [progress.eval_rows[0]] + [map(str, row.values()) for row in progress.eval_rows]
-    save_file(os.path.join(args.output_dir, "eval.csv"), "".join(
-        ",".join(line) + "\n" for line in lines).encode())
+                               "wall_time": round(progress.elapsed, 1)})
+    text = io.StringIO()
+    table = csv.DictWriter(text, fieldnames=progress.eval_rows[0].keys(),
+                           lineterminator="\n")
+    table.writeheader()
+    table.writerows(progress.eval_rows)
+    save_file(os.path.join(args.output_dir, "eval.csv"), text.getvalue().encode())
     for name, value in result.items():
         writer.add_scalar(f"eval/{name}", value, step)
-    writer.add_scalar("charts/SPS", step / wall_time, step)
-    print(f"step {step}: eval return {result['episode_return']:.1f}, {step / wall_time:.0f} SPS")
+    writer.add_scalar("charts/SPS", step / progress.elapsed, step)
+    say(f"step {step}: eval return {result['episode_return']:.1f}, "
+        f"{step / progress.elapsed:.0f} steps/s")
 
 
 # Plumbing: command line, files, checkpoints, logging
+def say(message):
+    """A line of its own, over the progress line."""
+    print(("\r\033[K" if sys.stdout.isatty() else "") + message, flush=True)
+
+
 def fail(message, code=2):
-    print(f"error: {message}", file=sys.stderr)
+    print(("\r\033[K" if sys.stderr.isatty() else "") + f"error: {message}", file=sys.stderr)
     sys.exit(code)
 
 
@@ -755,16 +778,7 @@ def parse_args():
         if set(saved) != {f.name for f in fields(Args)}:
             fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
         default = Args(**saved)
-    captured = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(captured):
-            args = tyro.cli(Args, default=default)
-    except SystemExit as exit_:
-        if exit_.code:  # tyro's box, up to its first rule, in one line
-            box = captured.getvalue().split("\n")[1:]
-            text = " ".join(line.strip("│╭╰╮╯ ") for line in box)
-            fail(" ".join(text.split("─")[0].split()))
-        raise
+    args = tyro.cli(Args, default=default)
     if given.resume:
         changed = [k for k, v in vars(args).items()
                    if v != getattr(default, k) and k not in RESUME_MAY_CHANGE]
@@ -786,6 +800,7 @@ def check_args(args, episode_len):
         ("total_timesteps", lambda v: v > pretrain, f"> --seed-steps + --unsup-steps ({pretrain})"),
         ("buffer_size", lambda v: v == 0 or v >= max(args.batch_size, episode_len),
          "0 or >= the batch size and T"),
+        ("rime_beta_min", lambda v: v <= args.rime_beta_max, "<= --rime-beta-max"),
     ]
     for name, ok, rule in rules:
         if not ok(getattr(args, name)):
@@ -804,7 +819,7 @@ def check_video(eval_env):
     except Exception as error:
         print(f"error: --capture-video cannot render ({type(error).__name__}); it needs moviepy "
               "and, without a display, MUJOCO_GL=egl or osmesa", file=sys.stderr, flush=True)
-        os._exit(2)  # not sys.exit: the GL context's finalizer would print a traceback
+        os._exit(2)  # MuJoCo's half-made GL context raises in its finalizer
 
 
 def snapshot(parts):
@@ -868,7 +883,76 @@ class Progress:
     next_feedback_step: int = 0
     pretrained: bool = False
     eval_rows: list = field(default_factory=list)
-    start_time: float = 0.0
+    elapsed: float = 0.0  # seconds, over all of the run's processes
+
+
+
+def duration(seconds):
+    if seconds >= 5400:
+        return f"{seconds / 3600:.1f} h"
+    if seconds >= 90:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds:.0f} s"
+
+
+class Console:
+    """A start line, then progress: in place on a terminal, a line a minute in a file."""
+
+    def __init__(self, args, progress, planned, device):
+        self.total = args.total_timesteps
+        self.planned = 0 if args.ground_truth_reward else planned
+        self.metaworld = env_kind(args.env_id) == "metaworld"
+        self.on_cpu = device.type == "cpu"
+        self.terminal = sys.stdout.isatty()
+        self.clock = time.time() - progress.elapsed
+        self.minute_start = time.time()
+        self.minute_step = progress.global_step
+        self.minutes = 0
+        self.rate = 0.0  # steps/s over the last full minute
+        self.shown = time.time()
+        name = f"the CPU (torch threads: {torch.get_num_threads()})"
+        if device.type == "cuda":
+            name = torch.cuda.get_device_name(device)
+        labels = "the true reward" if args.ground_truth_reward else f"{planned} labels planned"
+        say(f"{args.exp_name} on {name}: {args.total_timesteps} steps, {labels}; "
+            f"outputs in {args.output_dir}")
+
+    def update(self, progress):
+        """Each step: the clock, and the line when due."""
+        now = time.time()
+        progress.elapsed = now - self.clock
+        step = progress.global_step
+        new_minute = now - self.minute_start >= 60
+        if new_minute:
+            self.rate = (step - self.minute_step) / (now - self.minute_start)
+            self.minute_start = now
+            self.minute_step = step
+            self.minutes += 1
+        if new_minute and self.minutes == 2 and self.on_cpu:
+            hours = (progress.elapsed + (self.total - step) / max(self.rate, 1e-9)) / 3600
+            if hours > 12:
+                say(f"note: on this CPU the run takes about {hours:.0f} h; the README's CPU "
+                    f"scale ({CPU_SCALE}) takes under an hour; the run goes on")
+        due = now - self.shown >= 1 if self.terminal else new_minute
+        if due or step >= self.total:
+            self.shown = now
+            self.show(progress, now)
+
+    def show(self, progress, now):
+        step = progress.global_step
+        rate = self.rate or (step - self.minute_step) / max(now - self.minute_start, 1e-9)
+        left = duration((self.total - step) / rate) if rate else "-"
+        text = f"step {step}/{self.total} | {rate:.0f} steps/s | {left} left"
+        if progress.eval_rows:
+            text += f" | eval return {progress.eval_rows[-1]['episode_return']:.1f}"
+        if progress.eval_rows and self.metaworld:
+            text += f", success {progress.eval_rows[-1]['success_rate']:.0%}"
+        if self.planned:
+            text += f" | labels {progress.feedback_used}/{self.planned}"
+        if self.terminal:
+            print("\r" + text + "\033[K", end="", flush=True)
+        else:
+            print(text, flush=True)
 
 
 if __name__ == "__main__":
@@ -882,7 +966,8 @@ if __name__ == "__main__":
         check_args(args, episode_len)
         sampler_seed, teacher_seed, action_seed = numpy_seeds(args.seed)
         episodes = deque(maxlen=args.query_recent_episodes or None)  # the query pool
-        teacher_fields = {k[8:]: v for k, v in vars(args).items() if k.startswith("teacher_")}
+        teacher_fields = {k.removeprefix("teacher_"): v for k, v in vars(args).items()
+                          if k.startswith("teacher_")}
         teacher = make_teacher(args.teacher, teacher_seed, args.output_dir, episodes,
                                **teacher_fields)
         obs_dim = env.observation_space.shape[0]
@@ -942,8 +1027,8 @@ if __name__ == "__main__":
     planned = planned_labels(session_sizes, first_session, args.feedback_every,
                              args.total_timesteps)
     if planned < args.max_feedback and not args.ground_truth_reward:
-        print(f"note: only {planned} of the {args.max_feedback} labels fit in the run")
-    progress = Progress(next_feedback_step=first_session, start_time=time.time())
+        say(f"note: only {planned} of the {args.max_feedback} labels fit in the run")
+    progress = Progress(next_feedback_step=first_session)
     parts = {"progress": progress, "actor": actor, "critic": critic,
              "critic_target": critic_target, "reward_model": reward_model,
              "actor_optimizer": actor_optimizer, "critic_optimizer": critic_optimizer,
@@ -956,9 +1041,9 @@ if __name__ == "__main__":
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {args.output_dir!r} has already finished")
-        print(f"resuming from the checkpoint at step {progress.global_step}")
+        say(f"resuming from the checkpoint at step {progress.global_step}")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
-        progress.start_time += time.time() - os.path.getmtime(checkpoint_path)
+    console = Console(args, progress, planned, device)
     # The running episode again from its seed and actions
     obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
     for action in progress.running_episode[1]:
@@ -971,11 +1056,9 @@ if __name__ == "__main__":
     # Algorithm 3 (PEBBLE), Algorithm 2 (unsupervised pre-training) first
     try:
         for global_step in range(progress.global_step + 1, args.total_timesteps + 1):
-            # Feedback session, relabelling, critic reset (Algorithm 3, lines 9-17)
-            new_reward = args.ground_truth_reward and global_step == first_session
-            if (not args.ground_truth_reward and global_step >= progress.next_feedback_step
-                    and progress.sessions_done < len(session_sizes)
-                    and any(len(episode[0]) >= args.segment_len for episode in episodes)):
+            # Algorithm 3, lines 9-17: a feedback session when due, then relabelling
+            first_learned_reward = False
+            if session_due(args, global_step, progress, session_sizes, episodes):
                 if args.teacher == "human":  # --resume asks it again
                     save_checkpoint(checkpoint_path, parts)
                 size = int(session_sizes[progress.sessions_done])
@@ -984,8 +1067,10 @@ if __name__ == "__main__":
                                             discriminator, teacher, rng, writer, episode_len)
                 if n_labels:
                     relabel(buffer, reward_model)
-                new_reward = n_labels > 0 and not progress.pretrained
-            if new_reward:
+                first_learned_reward = n_labels > 0 and not progress.pretrained
+            # Pre-training ends (Algorithm 2)
+            true_reward_from_now = args.ground_truth_reward and global_step == first_session
+            if first_learned_reward or true_reward_from_now:  # RIME's code: no critic reset
                 progress.pretrained = True
                 for update in range(1, args.critic_reset_updates + 1):
                     batch = buffer.sample(args.batch_size)
@@ -1046,13 +1131,14 @@ if __name__ == "__main__":
             if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
                 evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
                            eval_env, writer, device)
+            console.update(progress)
             if (args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop
                     or global_step == args.total_timesteps):
                 check_finite(losses)
                 save_checkpoint(checkpoint_path, parts)
             if stop and global_step < args.total_timesteps:
-                print(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
-                      f"continue with --resume {args.output_dir}", flush=True)
+                say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
+                    f"continue with --resume {args.output_dir}")
                 sys.exit(128 + stop[0])
     except (FloatingPointError, OSError) as error:
         fail(f"{error} at step {progress.global_step + 1}; the run stopped, its last checkpoint "
@@ -1061,7 +1147,7 @@ if __name__ == "__main__":
     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                    "reward_model": reward_model.state_dict()}
     torch.save(final_model, os.path.join(args.output_dir, "final_model.pt"))
-    print(f"done: {progress.sessions_done} feedback sessions, {progress.feedback_used} queries; "
-          f"outputs in {args.output_dir}")
+    say(f"done: {progress.sessions_done} feedback sessions, {progress.feedback_used} queries; "
+        f"outputs in {args.output_dir}")
     eval_env.close()
     writer.close()

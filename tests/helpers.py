@@ -83,6 +83,15 @@ def assert_rejected(result, message: str, out: Path):
     assert not out.exists()
 
 
+def assert_refused_by_tyro(result, message: str, out: Path):
+    """A flag tyro cannot parse: tyro's own error box (exit code 2) that says it, no traceback, nothing written."""
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    text = " ".join(re.sub("[│╭╰╮╯─]", " ", result.stderr).split())  # the box's text, unwrapped
+    assert message in text, result.stderr
+    assert not out.exists()
+
+
 def start_script(script: str, out: Path, *flags: str, **popen_kwargs) -> subprocess.Popen:
     """A run in the background, to be killed or signalled."""
     cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]

@@ -16,7 +16,7 @@ import torch
 import pebble
 from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes, session_steps
 from sim_teacher import TEACHERS, make_teacher
-from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_rejected, eval_curve, eval_rows,
+from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve, eval_rows,
                            assert_pebble_phases, run_script, scalars, saved_labels, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
@@ -530,9 +530,7 @@ def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
 
 # ---------------------------------------------------------------- bad input: one line, non-zero exit, nothing run
 
-BAD_INPUTS = [
-    (["--env-id", "nowhere-walk"], "--env-id"),
-    (["--env-id", "nomodule_xyz:Thing-v0"], "--env-id"),
+TYRO_ERRORS = [  # tyro's own checks: its error box
     (["--teacher", "sleepy"], "invalid choice 'sleepy' for argument '--teacher'. Expected one of ('oracle', 'stoc', "
                               "'mistake', 'skip', 'equal', 'myopic', 'human')"),
     (["--sampler", "best"], "invalid choice 'best' for argument '--sampler'. Expected one of ('uniform', "),
@@ -541,6 +539,10 @@ BAD_INPUTS = [
     (["--seed", "abc"], "Error parsing --seed: invalid literal for int() with base 10: 'abc'"),
     (["--max-feedback", "many"], "Error parsing --max-feedback:"),
     (["--no-such-flag"], "Unrecognized options: --no-such-flag"),
+]
+BAD_INPUTS = [  # our own checks: one line
+    (["--env-id", "nowhere-walk"], "--env-id"),
+    (["--env-id", "nomodule_xyz:Thing-v0"], "--env-id"),
     (["--seed", "-1"], "--seed must be >= 0"),
     (["--max-feedback", "-5"], "--max-feedback must be >= 1"),
     (["--max-feedback", "100", "--feedback-per-session", "200"], "--feedback-per-session must be <= --max-feedback"),
@@ -559,6 +561,13 @@ BAD_INPUTS = [
     (["--learning-rate", "0"], "--learning-rate must be > 0, got 0.0"),
     (["--alpha-lr", "-1e-4"], "--alpha-lr must be > 0, got -0.0001"),
 ]
+
+
+@pytest.mark.parametrize("flags, message", TYRO_ERRORS, ids=[" ".join(f) for f, _ in TYRO_ERRORS])
+def test_flags_tyro_cannot_parse_are_tyro_s_error_and_exit_2_before_training(tmp_path, flags, message):
+    out = tmp_path / "run"
+    result = run_pebble(out, *flags, timeout=120)
+    assert_refused_by_tyro(result, message, out)
 
 
 @pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 import prefppo
 from samplers import planned_labels, schedule_sizes
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
-from tests.helpers import (ENV, ROOT, assert_inputs_standardised_by_labelled_states, assert_rejected, eval_curve,
+from tests.helpers import (ENV, ROOT, assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve,
                            eval_rows, run_script, saved_labels, scalars, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
@@ -515,14 +515,16 @@ def test_same_seed_gives_the_same_run_on_cpu_and_no_bootstrap_time_limits_anothe
     assert eval_curve(tmp_path / "c") != eval_curve(tmp_path / "a")
 
 
-BAD_INPUTS = [
-    (["--env-id", "nowhere-walk"], "--env-id"),
+TYRO_ERRORS = [  # tyro's own checks: its error box
     (["--teacher", "sleepy"], "invalid choice 'sleepy' for argument '--teacher'. Expected one of ('oracle', 'stoc', "
                               "'mistake', 'skip', 'equal', 'myopic', 'human')."),
     (["--sampler", "best"], "invalid choice 'best' for argument '--sampler'. Expected one of ('uniform',"),
     (["--schedule", "random"], "invalid choice 'random' for argument '--schedule'"),
     (["--num-envs", "two"], "Error parsing --num-envs"),
     (["--bogus-flag", "1"], "Unrecognized options: --bogus-flag"),
+]
+BAD_INPUTS = [  # our own checks: one line
+    (["--env-id", "nowhere-walk"], "--env-id"),
     (["--max-feedback", "-5"], "--max-feedback must be >= 1"),
     (["--max-feedback", "100", "--feedback-per-session", "200"], "--feedback-per-session must be <= --max-feedback"),
     (["--segment-len", "5000"], "--segment-len must be in [1, 1000]"),
@@ -537,6 +539,13 @@ BAD_INPUTS = [
     (["--query-recent-episodes", "-1"], "--query-recent-episodes must be >= 0"),
     (["--unsup-steps", "5000000"], "--total-timesteps must be > --unsup-steps (5000000)"),
 ]
+
+
+@pytest.mark.parametrize("flags, message", TYRO_ERRORS, ids=[" ".join(f) for f, _ in TYRO_ERRORS])
+def test_flags_tyro_cannot_parse_are_tyro_s_error_and_exit_2_before_training(tmp_path, flags, message):
+    out = tmp_path / "run"
+    result = run_prefppo(out, *flags, timeout=120)
+    assert_refused_by_tyro(result, message, out)
 
 
 @pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])
