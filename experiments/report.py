@@ -562,23 +562,32 @@ def pooled_differences(pairs: list[tuple[tuple, list[Run], list[Run]]], reps: in
     return pooled
 
 
+LEVEL = 0.15  # no difference detected and its CI within +-15% of the base's mean: level
+
+
 def verdict(row: dict, names: tuple[str, str] = ("ours", "reference")) -> str:
-    """Within noise when the bootstrap CI of the difference holds 0 and Welch's p >= 0.05; not within noise when
-    neither does; inconclusive when they disagree (with few seeds the percentile bootstrap is too narrow). names:
-    how the two arms ("ours" and "reference" in the row's keys) are called."""
+    """Three verdicts: higher or lower when the bootstrap CI of the difference excludes 0 and Welch's p < 0.05 (with
+    few seeds the percentile bootstrap is too narrow, so both must agree), else no difference detected; called level
+    as well when the CI lies within +-15% of the base's mean. names: how the two arms ("ours" and "reference" in the
+    row's keys) are called."""
     new, base = names
     point, low, high = row["difference"]
-    interval = f"95% CI [{low:+.1f}, {high:+.1f}], Welch p = {row['welch_p']:.3f}"
-    side = f"{new} is {'lower' if point < 0 else 'higher'} by {abs(point):.1f} " \
-           f"({abs(point) / abs(row['reference_final_mean']):.0%} of {'the ' * (base == 'reference')}{base}'s mean)"
+    base_mean = abs(row["reference_final_mean"])
+    of_base = f"{'the ' * (base == 'reference')}{base}'s mean"
+    difference = f"{new} - {base} = {point:+.1f}"
     if np.isnan(row["welch_p"]):  # welch_p: nan with fewer than 2 runs a side
-        return f"inconclusive: {side} (a single run on a side: no test; more seeds needed)"
-    zero_inside, significant = low <= 0 <= high, row["welch_p"] < 0.05
-    if zero_inside and not significant:
-        return f"within noise: {new} - {base} = {point:+.1f}, {interval}"
-    if not zero_inside and significant:
-        return f"not within noise: {side}, {interval}"
-    return f"inconclusive: {side}, {interval} (the bootstrap CI and Welch's test disagree: more seeds needed)"
+        return f"no difference detected: {difference} (a single run on a side: no test; more seeds needed)"
+    interval = f"95% CI [{low:+.1f}, {high:+.1f}], Welch p = {row['welch_p']:.3f}"
+    zero_outside = not low <= 0 <= high
+    if zero_outside and row["welch_p"] < 0.05:
+        side = "lower" if point < 0 else "higher"
+        return f"{side}: {difference} ({abs(point) / base_mean:.0%} of {of_base}), {interval}"
+    if -LEVEL * base_mean <= low and high <= LEVEL * base_mean:
+        return f"no difference detected, level (the CI within ±{LEVEL:.0%} of {of_base}): {difference}, {interval}"
+    if zero_outside:
+        return f"no difference detected: {difference}, {interval} (the bootstrap CI excludes 0, Welch's test does " \
+               "not: more seeds needed)"
+    return f"no difference detected: {difference}, {interval}"
 
 
 def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path, prefix: str = "parity") -> Path:

@@ -356,7 +356,7 @@ def test_report_sets_both_implementations_side_by_side_with_a_verdict(tmp_path):
                             env=ENV, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
     text = target.read_text()
-    assert "**Verdict: not within noise: ours is lower by 800.0 (88% of the reference's mean)" in text
+    assert "**Verdict: lower: ours - reference = -800.0 (88% of the reference's mean), 95% CI [" in text
     assert "| ours | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 80.0 |" in text
     assert "| reference | 1 2 3 | 910.0 ± 8.2 | 900 910 920 | 485.0 |" in text
     with open(root / "report" / "parity.csv") as f:
@@ -386,11 +386,11 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     text = (root / "report" / "compare_rime_pebble.md").read_text()
     assert text.count("## walker-walk, teacher oracle") == 1  # the setting without a pebble twin is left out
-    assert "**Verdict: not within noise: rime is higher by 610.0 (555% of pebble's mean)" in text
+    assert "**Verdict: higher: rime - pebble = +610.0 (555% of pebble's mean), 95% CI [" in text
     assert "| rime | 1 2 3 | 720.0 ± 16.3 | 700 720 740 | 385.0 |" in text
     assert "| pebble | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 85.0 |" in text
     assert "| 2 | 800 | 92 | 110 | 0.60 | 0.40 |" in text
-    assert "compare: walker-walk / oracle / 1000/100 / disagreement / uniform: not within noise" in result.stdout
+    assert "compare: walker-walk / oracle / 1000/100 / disagreement / uniform: higher: rime - pebble" in result.stdout
     figure = root / "report" / "compare_rime_pebble_rime_walker-walk_oracle_1000-100_disagreement_uniform.png"
     assert figure.read_bytes()[:4] == b"\x89PNG"
     refused = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--compare", "rime",
@@ -398,15 +398,28 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     assert refused.returncode != 0 and "--compare rime prefppo: no setting below" in refused.stderr
 
 
-def test_equal_arms_are_within_noise():
+def test_a_verdict_is_higher_lower_or_no_difference_detected_and_level_only_with_a_narrow_ci():
     ours, reference = np.array([500.0, 700.0, 600.0]), np.array([650.0, 550.0, 600.0])
     point, low, high = report.difference_ci(ours, reference, 4000, 0)
     assert point == 0 and low < 0 < high
     row = {"difference": (point, low, high), "reference_final_mean": 600.0, "welch_p": report.welch_p(ours, reference)}
-    assert report.verdict(row).startswith("within noise")
+    assert report.verdict(row).startswith("no difference detected: ours - reference = +0.0, 95% CI [")
+    # a CI inside +-15% of the reference's mean (+-90 of 600) is level as well; one edge outside it is not
+    narrow = row | {"difference": (-10.0, -90.0, +60.0)}
+    assert report.verdict(narrow).startswith("no difference detected, level (the CI within ±15% of the reference's")
+    assert "level" not in report.verdict(row | {"difference": (-10.0, -91.0, +60.0)})
+    # -270 with a CI of [-563, +28]: wide, no difference detected, not level
+    wide = {"difference": (-270.3, -563.4, 28.3), "reference_final_mean": 613.2, "welch_p": 0.236}
+    assert report.verdict(wide) == ("no difference detected: ours - reference = -270.3, 95% CI [-563.4, +28.3], "
+                                    "Welch p = 0.236")
+    higher = {"difference": (88.5, 45.7, 146.0), "reference_final_mean": 501.3, "welch_p": 0.021}
+    assert report.verdict(higher) == ("higher: ours - reference = +88.5 (18% of the reference's mean), 95% CI "
+                                      "[+45.7, +146.0], Welch p = 0.021")
+    assert report.verdict(higher, ("rime", "pebble")).startswith("higher: rime - pebble = +88.5 (18% of pebble's mean)")
     # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): no verdict either way
     row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134}
-    assert report.verdict(row).startswith("inconclusive: ours is lower by 176.7")
+    assert report.verdict(row).startswith("no difference detected: ours - reference = -176.7")
+    assert report.verdict(row).endswith("(the bootstrap CI excludes 0, Welch's test does not: more seeds needed)")
     one_each = row | {"difference": (-50.0, -50.0, -50.0), "welch_p": report.welch_p(np.array([550.0]), np.array([600.0]))}
     assert report.verdict(one_each).endswith("(a single run on a side: no test; more seeds needed)")
 
