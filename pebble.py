@@ -40,7 +40,7 @@ class Args:
     capture_video: bool = False
     """if toggled, record each evaluation's first episode to videos/"""
     output_dir: str = ""
-    """where the run's files go (default: runs/<run name>)"""
+    """where the run's files go ('': runs/<run name>)"""
     checkpoint_every: int = 50000
     """steps between checkpoints (0: at the end and on SIGTERM/SIGINT)"""
     resume: str = ""
@@ -683,7 +683,13 @@ def parse_args():
         if set(saved) != {f.name for f in fields(Args)}:
             fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
         default = Args(**saved)
-    args = tyro.cli(Args, default=default)
+    marked = [f"--{k.replace('_', '-')}" for k, v in vars(default).items()
+              if v != getattr(Args(), k) and k not in ("env_id", "teacher")]
+    about = f"Defaults of --env-id {default.env_id} --teacher {given.teacher or default.teacher}; "
+    about += "from their preset: " + (" ".join(marked) or "none")
+    if given.resume:
+        about = f"Defaults: the configuration of the run in {given.resume}"
+    args = tyro.cli(Args, default=default, description=about)
     if given.resume:
         changed = [k for k, v in vars(args).items()
                    if v != getattr(default, k) and k not in RESUME_MAY_CHANGE]

@@ -5,6 +5,7 @@ and bad input that must end with one line and a non-zero exit before any trainin
 import importlib
 import json
 import math
+import re
 import types
 import typing
 import warnings
@@ -251,6 +252,24 @@ def test_metaworld_train_and_eval_goals_are_fresh_draws_from_the_whole_range(env
         width = space.high[i] - space.low[i]  # and both samples span nearly all of it
         assert train[:, i].max() - train[:, i].min() > 0.9 * width
         assert evaluation[:, i].max() - evaluation[:, i].min() > 0.9 * width
+
+
+@pytest.mark.parametrize("env_id", ["button-press", "sweep-into"])
+def test_metaworld_object_moves_between_resets_repeats_for_a_seed_and_episodes_last_500_steps(env_id):
+    """What the agent sees: the object's position (observation 4:7) changes from one reset to the next and is the
+    same again for the same episode seed; an episode is 500 steps, ended by the time limit only (the reference's
+    v2 set-up: no termination on success)."""
+    env, episode_len = pebble.make_env(env_id)
+    seeds = [pebble.episode_seed(1, pebble.TRAIN_STREAM, episode) for episode in range(3)]
+    objects = [env.reset(seed=seed)[0][4:7] for seed in seeds]
+    assert not np.allclose(objects[0], objects[1]) and not np.allclose(objects[1], objects[2])
+    np.testing.assert_array_equal(env.reset(seed=seeds[1])[0][4:7], objects[1])
+    assert episode_len == 500
+    steps, terminated, truncated = 0, False, False
+    while not (terminated or truncated):
+        terminated, truncated = env.step(env.action_space.sample())[2:4]
+        steps += 1
+    assert steps == 500 and truncated and not terminated
 
 
 def test_metaworld_goals_are_reproducible_from_the_seed():
@@ -590,3 +609,15 @@ def test_help_lists_the_choices():
     result = run_script("pebble.py", "unused", "--help", timeout=120)
     assert result.returncode == 0 and "{oracle,stoc,mistake,skip,equal,myopic,human}" in result.stdout
     assert "--cuda, --no-cuda" in result.stdout
+
+
+def test_help_names_the_flags_whose_defaults_come_from_the_task_s_preset():
+    result = run_script("pebble.py", "unused", "--env-id", "button-press", "--teacher", "myopic", "--help",
+                        timeout=120)
+    description = " ".join(re.sub("[│╭╰╮╯─]", " ", result.stdout).split())  # the help box, unwrapped
+    assert result.returncode == 0
+    assert ("Defaults of --env-id button-press --teacher myopic; from their preset: --total-timesteps "
+            "--teacher-gamma --max-feedback --feedback-per-session --feedback-every --hidden-dim --num-layers "
+            "--batch-size --learning-rate --reward-epochs") in description
+    assert "from their preset: none" in " ".join(run_script("pebble.py", "unused", "--help").stdout.split())
+    assert "where the run's files go ('': runs/<run name>) (default: '')" in description
