@@ -2,8 +2,8 @@
 # docs/teacher_fit.md
 """Maximum-likelihood fit of SimTeacher(beta, gamma, eps_mistake, eps_skip, eps_equal) to labels.
 
-    python fit_teacher.py --labels runs/<run>            # a run directory, its labels/ or one .npz
-    python fit_teacher.py --labels runs/check --simulate  # simulated labels written there, fitted
+    python fit_teacher.py runs/<run>             # a run directory, its labels/ or one .npz
+    python fit_teacher.py runs/check --simulate  # simulated labels written there, fitted
 
 The likelihood of Algorithm 1 is a product of three factors, each fitted on its own:
   - skip: a pair is skipped iff max(R0, R1) < delta_skip (undiscounted returns);
@@ -28,6 +28,7 @@ import math
 import os
 import sys
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 import tyro
@@ -45,19 +46,23 @@ EPSILONS = np.concatenate([[0.0], np.geomspace(1e-3, 0.05, 8, endpoint=False),
                            np.linspace(0.05, 0.5, 19)])
 N_BETAS = 48  # grid of beta: 0, N_BETAS values log-spaced over the relevant range, inf
 BISECTIONS = 8  # steps locating an end of an interval between two grid values
-CHECK_BINS = 10  # bins of the return difference in the goodness-of-fit check
+CHECK_BINS = 10  # equal-count bins of each part of the goodness-of-fit check
 CHECK_LEVEL = 0.01  # p-value below which the fitted teacher does not describe the labels
+MAX_LAPSE = 0.05  # share of a threshold's decisions that may go against it (a person's slips)
 TEACHER = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias")  # --teacher-*
 
 
 @dataclass
 class Args:
-    labels: str
+    run_dir: Annotated[str | None, tyro.conf.Positional,
+                       tyro.conf.arg(metavar="RUN_DIR", help_behavior_hint="")] = None
     """a run directory, its labels/ directory, or one session_*.npz (pebble.py, prefppo.py)"""
+    labels: Annotated[str | None, tyro.conf.arg(metavar="RUN_DIR", help_behavior_hint="")] = None
+    """the same, as a flag (one of the two)"""
     level: float = 0.95
     """confidence level of the profile-likelihood intervals"""
     simulate: bool = False
-    """if toggled, first write a simulated run to --labels (the --teacher-* below label it)"""
+    """if toggled, first write a simulated run to RUN_DIR (the --teacher-* below label it)"""
     pairs: int = 1000
     """--simulate: the number of labelled pairs"""
     sessions: int = 10
@@ -453,41 +458,93 @@ def fit_bias(diff: np.ndarray, sign: np.ndarray, choice: dict, level: float) -> 
 # -------------------------------------------------------------------------------------------------
 
 
-def check_fit(result: dict, diff: np.ndarray, sign: np.ndarray, bins: int = CHECK_BINS) -> dict:
-    """Does the fitted choice describe the strict labels? Observed against predicted share of
-    "right" (y = 1) in `bins` equal-count bins of the fitted myopic return difference A1 - A0, the
-    G statistic over the bins (the likelihood ratio against each bin's own share) and its p-value
-    from chi2 with bins - 2 degrees of freedom (as Hosmer and Lemeshow's test), and a verdict."""
+def g_test(hits: np.ndarray, predicted: np.ndarray, order: np.ndarray,
+           bins: int = CHECK_BINS) -> dict:
+    """Observed against predicted share of hits in `bins` equal-count bins of `order`: the G
+    statistic over the bins (the likelihood ratio against each bin's own share) and its p-value
+    from chi2 with bins - 2 degrees of freedom, as Hosmer and Lemeshow's test."""
+    groups = np.array_split(np.argsort(order, kind="stable"), min(bins, len(hits)))
+    rows, statistic = [], 0.0
+    for group in groups:
+        n, observed = len(group), float(hits[group].sum())
+        expected = float(np.clip(predicted[group].sum(), 1e-9, n - 1e-9))
+        for o, e in ((observed, expected), (n - observed, n - expected)):
+            statistic += 2 * o * math.log(o / e) if o > 0 else 0.0
+        rows.append({"low": float(order[group].min()), "high": float(order[group].max()), "n": n,
+                     "observed": observed / n, "predicted": expected / n})
+    p_value = float(chi2.sf(statistic, max(len(groups) - 2, 1)))
+    return {"bins": rows, "statistic": statistic, "p_value": p_value}
+
+
+def check_fit(result: dict, diff: np.ndarray, sign: np.ndarray) -> dict:
+    """Does the fitted choice describe the strict labels? The G test of the share of "right"
+    (y = 1) in bins of the fitted myopic return difference A1 - A0, and how it fails: `lean`, the
+    side whose share is above its prediction in 8 or more of the bins (a side bias), or None."""
     advantage = advantages(diff, np.array([result["gamma"]]))[0]
     if math.isinf(result["beta"]):
         q = 0.5 * (1 + np.sign(advantage))
     else:
         q = expit(result["beta"] * advantage)
     l0, l1, k = lapses(result["eps_mistake"], result.get("bias", 0.0))
-    predicted = l1 + k * q
-    groups = np.array_split(np.argsort(advantage, kind="stable"), min(bins, len(sign)))
-    rows, statistic = [], 0.0
-    for group in groups:
-        n, observed = len(group), float((sign[group] > 0).sum())
-        expected = float(np.clip(predicted[group].sum(), 1e-9, n - 1e-9))
-        for o, e in ((observed, expected), (n - observed, n - expected)):
-            statistic += 2 * o * math.log(o / e) if o > 0 else 0.0
-        rows.append({"low": float(advantage[group].min()), "high": float(advantage[group].max()),
-                     "n": n, "observed": observed / n, "predicted": expected / n})
-    p_value = float(chi2.sf(statistic, max(len(groups) - 2, 1)))
-    below = sum(row["observed"] < row["predicted"] for row in rows)
-    if p_value >= CHECK_LEVEL:
-        verdict = ("the fitted teacher describes these labels: no bin's share of \"right\" is "
-                   "further from its prediction than chance allows")
-    elif below >= 0.8 * len(rows) or below <= 0.2 * len(rows):
-        side = "left (0)" if below >= 0.8 * len(rows) else "right (1)"
-        verdict = (f"the fitted teacher does NOT describe these labels: they lean {side} in "
-                   f"{max(below, len(rows) - below)} of {len(rows)} bins, whatever the segments (a "
-                   "side bias, which B-Pref's six teachers do not have)")
+    check = g_test(sign > 0, l1 + k * q, advantage)
+    below = sum(row["observed"] < row["predicted"] for row in check["bins"])
+    above = len(check["bins"]) - below
+    lean = "left (0)" if below >= 0.8 * len(check["bins"]) else (
+        "right (1)" if above >= 0.8 * len(check["bins"]) else None)
+    return check | {"lean": lean, "lean_bins": max(below, above)}
+
+
+def check_threshold(values: np.ndarray, scales: np.ndarray, hits: np.ndarray, part: dict) -> dict:
+    """Does the fitted threshold rule (fit_threshold's `part`) describe the decisions? The G test
+    of the share of hits in bins of value / scale (the threshold's unit) against the rule with its
+    lapse rate (lapses at random, whatever the value); the lapse rate, which the fitted teacher
+    (no lapses) should not need beyond slips; the hits given and those the fitted teacher makes."""
+    lapse = min(part["disagreements"] / len(hits), 0.5)
+    rule = values < part["estimate"] * scales
+    order = np.divide(values, scales, out=np.full(len(values), np.inf), where=scales > 0)
+    return g_test(hits, np.where(rule, 1 - lapse, lapse), order) | {
+        "lapse": lapse, "n": len(hits), "given": int(hits.sum()), "fitted": int(rule.sum())}
+
+
+def verdict(result: dict, level: float) -> str:
+    """The goodness-of-fit check in words: each part that does not fit and how; and a side bias
+    whose interval (at `level`) excludes 0."""
+    check = result["check"]
+    misfits = []
+    choice = check["choice"]
+    if choice["p_value"] < CHECK_LEVEL and choice["lean"]:
+        misfits.append(f"the strict answers lean {choice['lean']} in {choice['lean_bins']} of "
+                       f"{len(choice['bins'])} bins, whatever the segments")
+    elif choice["p_value"] < CHECK_LEVEL:
+        misfits.append("the share of \"right\" follows the return difference otherwise than any "
+                       "B-Pref teacher's")
+    unit = " / scale" if "eps_equal" in result["ci"] else ""
+    for name, value in (("equal", "|R1 - R0|"), ("skip", "max(R0, R1)")):
+        part = check[name]
+        why = []
+        if part["p_value"] < CHECK_LEVEL:
+            why.append(f"follow no one threshold of {value}{unit}, even with random lapses")
+        if part["lapse"] > MAX_LAPSE:
+            why.append(f"go against the fitted one in {part['lapse']:.0%} of the {part['n']} "
+                       f"decisions (more than {MAX_LAPSE:.0%}: slips)")
+        if why:
+            answers = "\"equal\" answers" if name == "equal" else "skips"
+            says = "says \"equal\" on" if name == "equal" else "skips"
+            misfits.append(f"the {answers} " + " and ".join(why) + f" ({part['given']} given; "
+                           f"the fitted teacher {says} {part['fitted']} of these pairs)")
+    if misfits:
+        text = "the fitted teacher does NOT describe these labels: " + "; ".join(misfits)
     else:
-        verdict = ("the fitted teacher does NOT describe these labels: their share of \"right\" "
-                   "follows the return difference otherwise than any B-Pref teacher's")
-    return {"bins": rows, "statistic": statistic, "p_value": p_value, "verdict": verdict}
+        text = ("the fitted teacher describes these labels: no bin's share of \"right\", of "
+                "\"equal\" or of skips is further from its prediction than chance allows")
+    if result["bias"]:
+        low, high = result["ci"]["bias"]
+        side = "right (1)" if result["bias"] > 0 else "left (0)"
+        text += (f". The answers lean {side} whatever the segments: the side bias's interval "
+                 f"[{low:.4g}, {high:.4g}] excludes 0, as it does by chance in {1 - level:.0%} of "
+                 "the fits of a teacher without a lean (no B-Pref teacher leans; below, the flags "
+                 "of the teacher with the bias and of the fit without it)")
+    return text
 
 
 # -------------------------------------------------------------------------------------------------
@@ -500,10 +557,12 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
     true per-step rewards; y (N,): 0, 1, 0.5 (equal), NaN where skipped; keep (N,): False where
     skipped; threshold_scale: None, a number or (N,): each pair's session (H / T) * R_avg.
 
-    Returns the SimTeacher fields beta, gamma, eps_mistake, eps_skip, eps_equal (an eps is None
-    where the scale is missing and the teacher skipped / said equal: then delta_skip, delta_equal
-    hold the thresholds in return units), ci (name -> (low, high) at `level`), the counts, loglik
-    (of the choice) and the threshold rules' disagreements (pairs no single threshold explains)."""
+    Returns the SimTeacher fields beta, gamma, eps_mistake, eps_skip, eps_equal, bias (an eps is
+    None where the scale is missing and the teacher skipped / said equal: then delta_skip,
+    delta_equal hold the thresholds in return units), ci (name -> (low, high) at `level`), the
+    counts, loglik (of the choice), the threshold rules' disagreements (pairs no single threshold
+    explains), check (the goodness of fit of its parts choice, equal, skip, and a verdict) and,
+    with a bias, without_bias (beta, gamma, eps_mistake and their ci fitted without it)."""
     rewards0, rewards1 = np.asarray(rewards0, np.float64), np.asarray(rewards1, np.float64)
     y, keep = np.asarray(y, np.float64), np.asarray(keep)
     if rewards0.ndim != 2 or rewards0.shape != rewards1.shape:
@@ -546,31 +605,36 @@ def fit(rewards0, rewards1, y, keep, threshold_scale=None, level: float = 0.95) 
     result["gamma_unknown"] = low <= GAMMAS[0] and high >= 1
     if result["gamma_unknown"]:
         result["gamma"] = 1.0
-    # The side bias: 0 (the simplest teacher) when its interval holds 0 or the bias-free teacher
-    # describes the labels, else beta, gamma and eps fitted again with it (intervals not given)
+    # The side bias: 0 (the simplest teacher) when its interval holds 0, else its estimate, with
+    # beta, gamma and eps fitted again with it (intervals not given); the fit without it is kept
     biased = fit_bias(diff, sign, result, level)
     result["ci"]["bias"] = biased["ci"]
     result["bias"] = 0.0
-    result["check"] = check_fit(result, diff, sign)
-    if not biased["ci"][0] <= 0 <= biased["ci"][1] and result["check"]["p_value"] < CHECK_LEVEL:
-        result |= {name: biased[name] for name in ("bias", "beta", "gamma", "eps_mistake")}
-        result["ci"] |= {name: (None, None) for name in ("beta", "gamma", "eps_mistake")}
-        result["check"] = check_fit(result, diff, sign)
+    if not biased["ci"][0] <= 0 <= biased["ci"][1]:
+        choice = ("beta", "gamma", "eps_mistake")
+        result["without_bias"] = {name: result[name] for name in choice} | {
+            "ci": {name: result["ci"][name] for name in choice}}
+        result |= {name: biased[name] for name in ("bias",) + choice}
+        result["ci"] |= {name: (None, None) for name in choice}
     # The thresholds in eps units (each session's delta = eps * its scale) when every session has
     # its scale (eps <= 1, as SimTeacher's), else one delta for all sessions in return units.
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
     scaled = threshold_scale is not None
     scales = threshold_scale if scaled else np.ones(n)
     upper = 1.0 if scaled else 2 * float(np.abs(np.concatenate([returns0, returns1])).max()) + 1
-    parts = {"skip": fit_threshold(np.maximum(returns0, returns1), scales, ~keep, upper, level),
-             "equal": fit_threshold(np.abs(returns1 - returns0)[keep], np.abs(scales[keep]),
-                                    y[keep] == 0.5, upper, level)}
-    for name, part in parts.items():
+    decisions = {"skip": (np.maximum(returns0, returns1), scales, ~keep),
+                 "equal": (np.abs(returns1 - returns0)[keep], np.abs(scales[keep]),
+                           y[keep] == 0.5)}  # (values, scales, hits) of each threshold rule
+    result["check"] = {"choice": check_fit(result, diff, sign)}
+    for name, (values, rule_scales, hits) in decisions.items():
+        part = fit_threshold(values, rule_scales, hits, upper, level)
         known = scaled or part["estimate"] == 0  # a rule switched off is eps = 0 at any scale
         result[f"eps_{name}"] = part["estimate"] if known else None
         result[f"delta_{name}"] = None if scaled else part["estimate"]
         result["ci"][f"eps_{name}" if scaled else f"delta_{name}"] = part["ci"]
         result[f"{name}_disagreements"] = part["disagreements"]
+        result["check"][name] = check_threshold(values, rule_scales, hits, part)
+    result["check"]["verdict"] = verdict(result, level)
     nonpositive = 0 if threshold_scale is None else int((threshold_scale <= 0).sum())
     return result | {"n_pairs": n, "n_strict": int(strict.sum()), "n_skipped": int((~keep).sum()),
                      "n_equal": int((keep & (y == 0.5)).sum()), "level": level,
@@ -587,6 +651,13 @@ def teacher_flags(result: dict) -> str:
     """The pebble.py / prefppo.py flags of the fitted teacher."""
     return " ".join(["--teacher oracle"] + [f"--teacher-{name.replace('_', '-')} {value:.4g}"
                                             for name, value in teacher_overrides(result).items()])
+
+
+def bin_rows(bins: list, share: str) -> list:
+    """A check's bins under a header: from .. to, pairs, observed and predicted share."""
+    return [f"  {'from .. to':^22} {'pairs':>6}  {'share ' + share:>11}  {'predicted':>9}"] + [
+        f"  {row['low']:>9.3g} .. {row['high']:<9.3g} {row['n']:>6}  {row['observed']:>11.2f}  "
+        f"{row['predicted']:>9.2f}" for row in bins]
 
 
 def report(result: dict, truth: dict | None = None) -> str:
@@ -615,7 +686,8 @@ def report(result: dict, truth: dict | None = None) -> str:
     if result["bias"]:
         lines.append("note: the answers lean to one side whatever the segments (bias: the share "
                      "of strict answers given to the right (> 0) or left (< 0) regardless); beta, "
-                     "gamma and eps_mistake are fitted again with it, without intervals")
+                     "gamma and eps_mistake are fitted again with it, without intervals (the fit "
+                     "without it is under the flags)")
     if result.get("gamma_unknown"):
         lines.append("note: gamma's interval is its whole range: the labels do not tell it "
                      "(segments whose rewards hardly change along them), so gamma is 1, the "
@@ -632,14 +704,31 @@ def report(result: dict, truth: dict | None = None) -> str:
                      + " and --teacher-eps-".join(missing) + " cannot be given")
     if "check" in result:
         check = result["check"]
-        lines += ["", f"goodness of fit (strict labels in {len(check['bins'])} bins of the fitted "
-                  f"A1 - A0): G = {check['statistic']:.1f}, p = {check['p_value']:.3g}",
-                  "  A1 - A0 from .. to      pairs  share right  predicted"]
-        lines += [f"  {row['low']:>9.3g} .. {row['high']:<9.3g} {row['n']:>6}  "
-                  f"{row['observed']:>11.2f}  {row['predicted']:>9.2f}" for row in check["bins"]]
+        choice = check["choice"]
+        unit = " / scale" if "eps_equal" in result["ci"] else ""
+        bins = len(choice["bins"])
+        lines += ["", f"goodness of fit (observed against predicted shares in {bins} bins each, G "
+                  f"on chi2 with {bins - 2} degrees of freedom):",
+                  f"strict labels by the fitted A1 - A0: G = {choice['statistic']:.1f}, "
+                  f"p = {choice['p_value']:.3g}"]
+        lines += bin_rows(choice["bins"], "right")
+        for name, value in (("equal", "|R1 - R0|"), ("skip", "max(R0, R1)")):
+            part = check[name]
+            pairs = "\"equal\" answers (kept pairs)" if name == "equal" else "skips (all pairs)"
+            lines.append(f"{pairs} by {value}{unit}: {part['given']} given, the fitted "
+                         f"teacher's {part['fitted']}; G = {part['statistic']:.1f}, "
+                         f"p = {part['p_value']:.3g}")
+            if part["p_value"] < CHECK_LEVEL or part["lapse"] > MAX_LAPSE:
+                lines += bin_rows(part["bins"], name)
         lines.append(f"verdict: {check['verdict']}")
     lines += ["", "simulate this teacher with pebble.py or prefppo.py (on the same task: beta is "
               "per unit of return):", f"  {teacher_flags(result)}"]
+    if "without_bias" in result:
+        without = result["without_bias"]
+        fitted = ", ".join(f"{name} {without[name]:.4g} [{low:.4g}, {high:.4g}]"
+                           for name, (low, high) in without["ci"].items())
+        lines += [f"without the side bias (fitted without it: {fitted}):",
+                  f"  {teacher_flags(result | without | {'bias': 0.0})}"]
     return "\n".join(lines)
 
 
@@ -664,6 +753,11 @@ def run_teacher(path: str) -> dict | None:
 
 def main():
     args = tyro.cli(Args)
+    if (args.run_dir is None) == (args.labels is None):
+        print("error: give the labels once: fit_teacher.py RUN_DIR (or --labels RUN_DIR)",
+              file=sys.stderr)
+        sys.exit(2)
+    path = args.run_dir or args.labels
     try:
         if args.simulate and not 1 <= args.sessions <= args.pairs:
             raise ValueError(f"--simulate needs 1 <= --sessions <= --pairs, got {args.sessions} "
@@ -672,17 +766,17 @@ def main():
             teacher = SimTeacher(args.teacher_beta, args.teacher_gamma, args.teacher_eps_mistake,
                                  args.teacher_eps_skip, args.teacher_eps_equal, args.teacher_bias,
                                  seed=args.seed)
-            simulate(args.labels, teacher, args.pairs, args.sessions, seed=args.seed)
-        data = load_labels(args.labels)
+            simulate(path, teacher, args.pairs, args.sessions, seed=args.seed)
+        data = load_labels(path)
         try:
             result = fit(data["rewards0"], data["rewards1"], data["y"], data["keep"],
                          data["threshold_scale"], args.level)
         except ValueError as error:
-            raise ValueError(f"{args.labels!r}: {error}") from None
+            raise ValueError(f"{path!r}: {error}") from None
     except (ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(2)
-    print(report(result, run_teacher(args.labels)))
+    print(report(result, run_teacher(path)))
 
 
 if __name__ == "__main__":
