@@ -5,10 +5,14 @@ every relative link checked against the files and their headings:
 
 A command is a line of a fenced code block, or an inline code span, that runs `python FILE ...` (or names a script of
 the repository). Checks, in one process: the file exists; every --flag it gives is a flag of that script (of the
-preset, for experiments/grid.py PRESET; of the script after `--`, for edits.py), read from its --help; and, where the
-command has no placeholder (<run>, RUN_DIR, ...), it parses as a user would run it: pebble.py, prefppo.py and rime.py
-through their own parse_args, make_env and check_args (every range check a run makes before any work), and
-experiments/grid.py as a --dry-run into a temporary root.
+preset, for experiments/grid.py PRESET; of the script after `--`, for edits.py), read from its --help; where the
+command has a placeholder (<run>, RUN_DIR, ...), the script's own parser (tyro.cli or argparse) accepts it with a
+value in each placeholder, so that a required flag or argument left out is found (the script stops once parsed);
+where it has none, it parses as a user would run it: pebble.py, prefppo.py and rime.py through their own parse_args,
+make_env and check_args (every range check a run makes before any work), and experiments/grid.py as a --dry-run into
+a temporary root. A grid preset's command runs as many seeds as the page says beside it: the "# N seeds" of its
+comment, else the last count stated before it in its paragraph ("5 seeds", "three seeds", "seeds 1-5", a table's
+"seeds" column; for a code block, the paragraph or table above it).
 """
 
 import contextlib
@@ -40,23 +44,27 @@ def quoted(text: str) -> list[str]:
 
 def commands(text: str) -> list[list[str]]:
     """The repository's scripts that the page's lines run, as argument lists [file, args...]."""
+    return [words for line in quoted(text) for words in line_commands(line)]
+
+
+def line_commands(line: str) -> list[list[str]]:
+    """The repository's scripts that one quoted line runs."""
     found = []
-    for line in quoted(text):
-        line = re.split(r"\s#\s|\s#$", line)[0]  # a trailing comment
-        line = re.sub(r"<[^<>]*>", "<x>", line)  # <its flags>: one placeholder
-        for part in re.split(r"&&|\|\||;|\|", line):
-            try:
-                words = shlex.split(part.replace("[", " ").replace("]", " "))
-            except ValueError:
-                continue
-            while words and re.fullmatch(r"[A-Z_]+=\S*", words[0]):  # MUJOCO_GL=egl ...
-                words = words[1:]
-            if words and words[0] in ("python", "python3"):
-                words = words[1:]
-            if words and re.fullmatch(r"(\./)?[\w./-]+\.(py|sh)", words[0]) and not words[0].startswith("/"):
-                if (ROOT / words[0]).suffix and words[0].split("/")[0] in {
-                        p.name for p in ROOT.iterdir()} | {"benchmarks", "experiments", "tests"}:
-                    found.append(words)
+    line = re.split(r"\s#\s|\s#$", line)[0]  # a trailing comment
+    line = re.sub(r"<[^<>]*>", "<x>", line)  # <its flags>: one placeholder
+    for part in re.split(r"&&|\|\||;|\|", line):
+        try:
+            words = shlex.split(part.replace("[", " ").replace("]", " "))
+        except ValueError:
+            continue
+        while words and re.fullmatch(r"[A-Z_]+=\S*", words[0]):  # MUJOCO_GL=egl ...
+            words = words[1:]
+        if words and words[0] in ("python", "python3"):
+            words = words[1:]
+        if words and re.fullmatch(r"(\./)?[\w./-]+\.(py|sh)", words[0]) and not words[0].startswith("/"):
+            if (ROOT / words[0]).suffix and words[0].split("/")[0] in {
+                    p.name for p in ROOT.iterdir()} | {"benchmarks", "experiments", "tests"}:
+                found.append(words)
     return found
 
 
@@ -116,6 +124,47 @@ def parse_algorithm(script: str, argv: list[str]) -> str | None:
     return None
 
 
+class Parsed(BaseException):
+    """Raised where tyro.cli or argparse's parse_args would return: the script stops once its command line has parsed
+    (not an Exception, so that no `except Exception` of the script catches it)."""
+
+
+def filled(args: list[str]) -> list[str]:
+    """The command with a value for each placeholder: <x> or ... where a flag's value cannot be (after the script or
+    another value) stands for more flags and is left out; any other placeholder becomes 1, which a parser takes as a
+    path, a string or a number."""
+    words = []
+    for i, word in enumerate(args):
+        if word in ("<x>", "...") and not (i and args[i - 1].startswith("--") and "=" not in args[i - 1]):
+            continue
+        words.append(re.sub(r"<[^>]*>|^\.\.\.$|^'?[A-Z][A-Z_]{2,}'?$", "1", word))
+    return words
+
+
+def parse_only(path: Path, argv: list[str]) -> str | None:
+    """None if the script's own parser accepts argv, else its error; nothing after the parsing runs."""
+    import argparse
+
+    import tyro
+
+    def stop(parse):
+        def parsed(*args, **kwargs):
+            parse(*args, **kwargs)
+            raise Parsed
+        return parsed
+
+    saved = tyro.cli, argparse.ArgumentParser.parse_args
+    tyro.cli, argparse.ArgumentParser.parse_args = stop(tyro.cli), stop(argparse.ArgumentParser.parse_args)
+    try:
+        code, text = run_main(path, argv)
+    except Parsed:
+        return None
+    finally:
+        tyro.cli, argparse.ArgumentParser.parse_args = saved
+    summary = re.sub(r"[-─]{3,}|For full helptext.*", " ", text, flags=re.S)  # tyro's box, without its frame
+    return " ".join(summary.split())[:300] or f"exit {code}"
+
+
 def check(words: list[str]) -> str | None:
     """None if the command fits the code, else what is wrong."""
     CHECKED.append(words)
@@ -156,7 +205,13 @@ def check(words: list[str]) -> str | None:
                 known = set().union(*(known_flags(ROOT / script) for script in scripts))
                 if unknown := [flag for flag in flags_of(shlex.split(value)) if flag not in known]:
                     return f"{name}: no flag {unknown[0]} in {', '.join(scripts)}"
-    if placeholder or "--help" in args:
+    if "--help" in args:
+        return None
+    parses_alone = re.search(r"tyro\.cli\(|\.parse_args\(", path.read_text()) and path.name != "grid.py"
+    resumes = {"--resume", "--labels-from"} & set(args)  # these read the run's files while parsing
+    if placeholder and parses_alone and not resumes and (error := parse_only(path, filled(args))):
+        return f"{words[0]} refuses its command line (placeholders filled in): {error}"
+    if placeholder:
         return None
     if path.name in ALGORITHMS and path.parent == ROOT:
         error = parse_algorithm(path.name, args)
@@ -166,6 +221,66 @@ def check(words: list[str]) -> str | None:
             code, text = run_main(path, [*args, "--root", root, "--dry-run"])
         return f"grid.py {args[0]} --dry-run fails: {text.strip()[-300:]}" if code else None
     return None
+
+
+NUMBERS = dict(zip(("one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten"), range(1, 11)))
+COUNT = re.compile(rf"\b(\d+|{'|'.join(NUMBERS)}) seeds\b|\bseeds (\d+)-(\d+)\b", re.I)
+
+
+def stated_seeds(text: str) -> list[tuple[int, str]]:
+    """The seed counts a piece of a page states, in order, with their words: "N seeds" ("five seeds"), "seeds A-B",
+    and the cells of a table's "seeds" column ("5", "1 2 3 4 5"; "5 / 3" states both). Code spans say nothing."""
+    found, column = [], None
+    for line in re.sub(r"`[^`]*`", " ", text).splitlines():
+        found += [(int(NUMBERS.get(m[1].lower(), m[1])) if m[1] else int(m[3]) - int(m[2]) + 1, m[0])
+                  for m in COUNT.finditer(line)]
+        if not line.lstrip().startswith("|"):
+            column = None
+            continue
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if column is None:  # a table's header
+            column = next((i for i, cell in enumerate(cells) if cell.lower().startswith("seeds")), -1)
+        elif 0 <= column < len(cells) and re.fullmatch(r"[\d /]+", cells[column]):
+            for part in cells[column].split("/"):
+                numbers = part.split()
+                count = int(numbers[0]) if len(numbers) == 1 else len(numbers)
+                found.append((count, f"{cells[column]} in the seeds column"))
+    return found
+
+
+def seeds_run(words: list[str]) -> int | None:
+    """How many seeds a grid preset's command runs (its --seeds, else the preset's); None for another command."""
+    args = words[1:]
+    if Path(words[0]).name != "grid.py" or not args or args[0] not in importlib.import_module("grid").PRESETS:
+        return None
+    if "--seeds" in args:
+        given = args[args.index("--seeds") + 1:]
+        return next((i for i, word in enumerate(given) if word.startswith("-")), len(given))
+    return len(importlib.import_module("grid").PRESETS[args[0]][1].seeds)
+
+
+def seed_mismatches(page: Path) -> list[str]:
+    """A grid preset's command beside another seed count than it runs: the count of its comment ("# 5 seeds"), else
+    the last one stated before it in its paragraph; for a code block, in the paragraph or table above the block."""
+    found = []
+
+    def compare(line: str, stated: list[tuple[int, str]]):
+        for words in line_commands(" ".join(line.split())):
+            if stated and (count := seeds_run(words)) is not None and count != stated[-1][0]:
+                found.append(f"{page.name}: `{' '.join(words)}` runs {count} seeds, beside {stated[-1][1]!r}")
+
+    text = page.read_text()
+    for block in re.finditer(r"```[a-z]*\n(.*?)```", text, re.S):
+        before = text[: block.start()].rstrip()
+        above = [] if before.endswith("```") else stated_seeds(before.split("\n\n")[-1])  # not a code block's
+        for line in block[1].replace("\\\n", " ").splitlines():
+            command, *comment = re.split(r"\s#(?=\s|$)", line, maxsplit=1)
+            compare(command, stated_seeds(" ".join(comment)) or above)
+    prose = re.sub(r"```[a-z]*\n.*?```", "\n\n", text, flags=re.S)
+    for paragraph in prose.split("\n\n"):
+        for span in re.finditer(r"`([^`]+)`", paragraph):
+            compare(span[1], stated_seeds(paragraph[: span.start()]))
+    return found
 
 
 def anchors(page: Path) -> set[str]:
@@ -194,7 +309,7 @@ def problems(pages=PAGES) -> list[str]:
     sys.path[:0] = [str(ROOT), str(ROOT / "experiments")]
     found = []
     for page in pages:
-        found += broken_links(page)
+        found += broken_links(page) + seed_mismatches(page)
         for words in commands(page.read_text()):
             if error := check(words):
                 found.append(f"{page.name}: `{' '.join(words)}`: {' '.join(error.replace('─', ' ').split())}")
