@@ -1058,11 +1058,11 @@ if __name__ == "__main__":
                 writer.add_scalar(f"losses/{name}", value, global_step)
             check_finite(losses)
 
+            console.update(progress)
             if global_step % args.eval_every < rollout or global_step >= args.total_timesteps:
                 policy = mean_policy(actor, obs_stats, device)
                 evaluation(args, global_step, progress, policy, reward_model, eval_env, writer,
                            device)
-            console.update(progress)
             if (args.checkpoint_every and global_step % args.checkpoint_every < rollout
                     or stop or global_step >= args.total_timesteps):
                 save_checkpoint(checkpoint_path, parts)
