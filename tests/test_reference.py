@@ -562,7 +562,7 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
     assert "## prefppo on walker-walk" in text and "Measured on training episodes" in text
     assert "| ours | 1 2 | 41.0 ± 10.0 | 31 51 |" in text  # the waves' means at 4000: 31 and 51
     assert "| reference | 1 2 | 31.0 ± 10.0 | 21 41 |" in text
-    assert "**Verdict: within noise: ours - reference = +10.0" in text
+    assert "**Verdict: no difference detected: ours - reference = +10.0" in text
 
 
 def test_report_loads_a_final_model_saved_before_the_input_normaliser_as_raw_inputs(tmp_path):
