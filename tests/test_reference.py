@@ -119,6 +119,46 @@ def test_our_flags_become_the_reference_settings_of_the_same_experiment():
     assert settings(sac)["num_unsup_steps"] == "9000"  # the same pre-training as ours
 
 
+def test_a_meta_world_task_becomes_the_reference_v2_task_with_the_task_preset():
+    args = reference_run.Args(output_dir="x", env_id="button-press", seed=2, teacher="oracle", max_feedback=900,
+                              feedback_per_session=50, total_timesteps=100000)
+    assert reference_run.resolve(args) is None
+    got = settings(reference_run.reference_command(args))
+    expected = {"env": "metaworld_button-press-v2", "agent.params.actor_lr": "0.0003", "reward_batch": "50",
+                "num_interact": "4950", "segment": "50", "reward_update": "10", "max_feedback": "900"}
+    assert {key: got[key] for key in expected} == expected
+    assert reference_run.reference_env("sweep-into-v3") == "metaworld_sweep-into-v2"
+    assert reference_run.reference_env("quadruped-walk") == "quadruped_walk"
+
+
+def test_meta_world_success_is_read_back_as_a_rate_and_the_loggers_empty_rows_are_skipped(tmp_path):
+    bpref = tmp_path / "bpref"
+    bpref.mkdir()
+    (bpref / "eval.csv").write_text("episode,episode_reward,step,success_rate\n"
+                                    "20.0,300.0,10000,30.0\n40.0,900.0,20000,100.0\n")
+    (bpref / "train.csv").write_text("episode,step,total_feedback\n20.0,10000,0.0\n21.0,10500,50.0\n"
+                                     "40.0,20000,100.0\n0.0,20000,0.0\n")  # its last row: an empty dump
+    rows = reference_run.converted_rows(bpref, [1.0, 2.0])
+    assert [(r["success_rate"], r["feedback"]) for r in rows] == [(0.3, 50.0), (1.0, 100.0)]
+
+
+def test_the_reference_on_meta_world_needs_its_own_environment_and_runs_pebble_and_sac_only(tmp_path):
+    def run(*flags):
+        result = subprocess.run([sys.executable, str(RUNNER), "--env-id", "button-press", "--output-dir",
+                                 str(tmp_path / "out"), *flags], capture_output=True, text=True, env=ENV)
+        return result.returncode, result.stderr.strip()
+
+    assert run("--reference-dir", str(tmp_path / "ref")) == (
+        2, f"error: no reference code in {tmp_path / 'ref'}: run benchmarks/reference/setup_metaworld.sh first")
+    (tmp_path / "ref" / ".venv-metaworld" / "bin").mkdir(parents=True)
+    (tmp_path / "ref" / ".venv-metaworld" / "bin" / "python").write_text("")
+    (tmp_path / "ref" / "BPref-metaworld").mkdir()
+    (tmp_path / "ref" / "BPref-metaworld" / "train_PEBBLE.py").write_text("")
+    assert run("--reference-dir", str(tmp_path / "ref"), "--algorithm", "prefppo") == (
+        2, "error: --env-id 'button-press': Meta-World runs with --algorithm pebble only here")
+    assert not (tmp_path / "out").exists()
+
+
 def test_rime_flags_become_the_flags_of_rimes_walker_runs():
     args = reference_run.Args(output_dir="x", algorithm="rime", seed=2, teacher="mistake", teacher_eps_mistake=0.3,
                               total_timesteps=100000, hidden_dim=256, num_layers=2, batch_size=256,

@@ -13,7 +13,9 @@ The output directory gets config.json (pebble.py's fields, with "implementation"
 command line), bpref/ (the reference's own files), eval.csv in pebble.py's columns (wall_time from this wrapper's
 clock at each evaluation line; the reference records no std: nan) and, at the end, final_model.pt (the
 reference's actor, critic and reward models as pebble.py's state dicts) and, in the last row, the final reward
-correlation measured by pebble.py's evaluate on those networks. The reference cannot resume: a run stopped part-way
+correlation measured by pebble.py's evaluate on those networks. A Meta-World task (button-press) runs its v2 class
+(metaworld_button-press-v2) in the tree and environment of setup_metaworld.sh; eval.csv's success_rate is its
+percentage / 100. The reference cannot resume: a run stopped part-way
 is started afresh by the grid.
 
 RIME (--algorithm rime, rime.py's flags): RIME's own code (CJReinforce/RIME_ICML2024, set up by setup_rime.sh), its
@@ -246,10 +248,24 @@ def prefppo_command(args: Args, log_dir: Path) -> list[str]:
     return ["train_PrefPPO.py", *[str(item) for flag, value in flags.items() for item in (flag, value)]]
 
 
+def reference_env(env_id: str) -> str:
+    """The reference's name of a task: walker_walk (DMC), metaworld_button-press-v2 (its Meta-World v2 class for our
+    v3 task)."""
+    if is_metaworld(env_id):
+        return f"metaworld_{env_id.removesuffix('-v3')}-v2"
+    domain, task = env_id.split("-", 1)
+    return f"{domain}_{task.replace('-', '_')}"
+
+
+def is_metaworld(env_id: str) -> bool:
+    import pebble
+
+    return pebble.env_kind(env_id) == "metaworld"
+
+
 def reference_command(args: Args) -> list[str]:
     """The reference's script and hydra overrides for these flags."""
-    domain, task = args.env_id.split("-", 1)
-    common = [f"env={domain}_{task.replace('-', '_')}", f"seed={args.seed}", f"device={'cuda' if args.cuda else 'cpu'}",
+    common = [f"env={reference_env(args.env_id)}", f"seed={args.seed}", f"device={'cuda' if args.cuda else 'cpu'}",
               "log_save_tb=false", f"num_train_steps={args.total_timesteps + 1}",
               f"num_seed_steps={args.seed_steps}", f"num_unsup_steps={args.unsup_steps}",
               f"agent.params.actor_lr={args.learning_rate}", f"agent.params.critic_lr={args.learning_rate}",
@@ -295,14 +311,17 @@ def converted_rows(bpref_dir: Path, wall_times: list[float]) -> list[dict]:
 
     # train.csv's total_feedback at step S is what was asked before the episode that ended at S began: the labels
     # at an evaluation are on the first train row after it (the last row for the final evaluation)
-    feedback = [(int(float(row["step"])), float(row.get("total_feedback") or 0)) for row in read("train.csv")]
+    # (rows of episode 0 are its logger's empty dumps, all zeros: at the end of a Meta-World run)
+    feedback = [(int(float(row["step"])), float(row.get("total_feedback") or 0)) for row in read("train.csv")
+                if float(row.get("episode") or 1) > 0]
     rows = []
     for i, row in enumerate(read("eval.csv")):
         step = int(float(row["step"]))
         later = [value for at, value in feedback if at > step] or [value for _, value in feedback[-1:]] or [0.0]
         returns = row.get("true_episode_reward") or row["episode_reward"]
+        success = float(row["success_rate"]) / 100 if row.get("success_rate") else math.nan  # Meta-World: percent
         rows.append({"step": step, "episode_return": float(returns), "episode_return_std": math.nan,
-                     "success_rate": math.nan, "feedback": later[0],
+                     "success_rate": success, "feedback": later[0],
                      "reward_correlation": math.nan, "wall_time": wall_times[i] if i < len(wall_times) else math.nan})
     return rows
 
@@ -414,8 +433,12 @@ def main(args: Args) -> int:
         return 2
     out, reference = Path(args.output_dir), Path(args.reference_dir)
     python, tree = reference / ".venv" / "bin" / "python", reference / "BPref"
+    metaworld = is_metaworld(args.env_id)
+    if metaworld:  # its Meta-World v2 on mujoco-py: a tree and an environment of their own
+        python, tree = reference / ".venv-metaworld" / "bin" / "python", reference / "BPref-metaworld"
     if not (python.exists() and (tree / "train_PEBBLE.py").exists()):
-        print(f"error: no reference code in {reference}: run benchmarks/reference/setup.sh first", file=sys.stderr)
+        setup = "setup_metaworld.sh" if metaworld else "setup.sh"
+        print(f"error: no reference code in {reference}: run benchmarks/reference/{setup} first", file=sys.stderr)
         return 2
     if args.algorithm == "rime":
         tree = reference / "RIME"
@@ -425,8 +448,12 @@ def main(args: Args) -> int:
             return 2
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
-    if tuple(args.env_id.split("-", 1)) not in suite.ALL_TASKS:
-        print(f"error: --env-id {args.env_id!r}: the reference runs DMC tasks only here", file=sys.stderr)
+    if metaworld and args.algorithm != "pebble":
+        print(f"error: --env-id {args.env_id!r}: Meta-World runs with --algorithm pebble only here", file=sys.stderr)
+        return 2
+    if tuple(args.env_id.split("-", 1)) not in suite.ALL_TASKS and not metaworld:
+        print(f"error: --env-id {args.env_id!r}: the reference runs DMC and Meta-World tasks only here",
+              file=sys.stderr)
         return 2
     if out.exists() and any(out.iterdir()):
         print(f"error: --output-dir {out} is not empty (the reference cannot resume)", file=sys.stderr)
