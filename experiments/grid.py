@@ -205,8 +205,10 @@ class Run:
         """The script and its flags (run with the Python of the machine that runs it); the same flags again on resume,
         which the scripts accept as they equal the saved configuration. The reference takes the same flags through
         its runner, which never resumes (it writes no checkpoint.pt: a stopped run is started afresh)."""
-        if self.implementation == "reference":
-            return [str(REFERENCE_RUNNER), "--algorithm", self.algorithm, *self.flags, "--output-dir", str(run_dir)]
+        if self.implementation == "reference":  # it writes no checkpoint: --checkpoint-every is ours only
+            at = self.flags.index("--checkpoint-every") if "--checkpoint-every" in self.flags else len(self.flags)
+            flags = self.flags[:at] + self.flags[at + 2:]
+            return [str(REFERENCE_RUNNER), "--algorithm", self.algorithm, *flags, "--output-dir", str(run_dir)]
         # a resumed run takes its directory from --resume (the folder may have moved since)
         script = [str(EDITS_RUNNER), *self.edits, "--"] if self.edits else []
         return [*script, str(ROOT / f"{self.algorithm}.py"), *self.flags, "--resume" if resume else "--output-dir",

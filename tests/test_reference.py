@@ -9,6 +9,7 @@ import shlex
 import subprocess
 import sys
 import types
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -328,6 +329,10 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
     command = reference["reference__pebble__walker-walk__oracle__fb1000-100__disagreement__uniform__s2"].command(
         tmp_path / "r", resume=True)
     assert command[0] == str(RUNNER) and command[-2:] == ["--output-dir", str(tmp_path / "r")]  # never --resume
+    checkpoints = replace(spec, flags=spec.flags + " --checkpoint-every 10000")  # ours only: the reference has none
+    run = next(r for r in grid.expand(checkpoints) if r.implementation == "reference")
+    assert "--checkpoint-every" not in run.command(tmp_path / "r", resume=False)
+    assert "10000" not in run.command(tmp_path / "r", resume=False)
     lines, printed = dry_run("parity-pebble", tmp_path / "g")
     assert len(printed) == 5 and len(lines) == 10
     assert printed[0][printed[0].index("--feedback-every") + 1] == "9000"
