@@ -433,3 +433,19 @@ def test_progress_estimates_time_left_from_the_runs_so_far(tmp_path):
     progress.durations = [300.0]  # one run of this grid took 300 s
     # a: 200 s left; two waiting runs of 300 s each; two workers share 800 s
     assert progress.time_left() == pytest.approx(400, abs=1)
+
+
+def test_the_card_commands_projection_adds_its_phases_as_measured_by_hand():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import card_speed
+
+    config = {"seed_steps": 1000, "unsup_steps": 9000, "eval_every": 10000, "total_timesteps": 100000,
+              "max_feedback": 300, "feedback_per_session": 100, "feedback_every": 30000}  # sessions 10001, 40001, 70001
+    walls = [(10000, 100.0), (20000, 180.0), (30000, 240.0), (40000, 300.0), (50000, 370.0)]
+    rows = [{"step": step, "wall_time": wall} for step, wall in walls]
+    blocks, total = card_speed.projection(rows, config)
+    assert [kind for _, kind, _, _ in blocks] == ["pre-training", "session + SAC", "SAC on r_hat", "SAC on r_hat",
+                                                  "session + SAC"]
+    # pre-training 100 s; 9 blocks of SAC at the median 60 s; sessions 1-3 cost 20, 40 and 60 s over SAC
+    assert total == pytest.approx(100 + 9 * 60 + 20 * (1 + 2 + 3))
+    assert np.isnan(card_speed.projection(rows[:2], config)[1])  # no block of SAC alone yet: no projection
