@@ -39,6 +39,8 @@ class Args:
     """the Weights & Biases project"""
     capture_video: bool = False
     """if toggled, record each evaluation's first episode to videos/"""
+    compile: bool = False
+    """if toggled, compile the SAC update and r_hat (CUDA graphs on a GPU)"""
     output_dir: str = ""
     """where the run's files go ('': runs/<run name>)"""
     checkpoint_every: int = 50000
@@ -646,7 +648,7 @@ def fail(message, code=2):
 
 
 RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
-                     "wandb_project_name", "capture_video")
+                     "wandb_project_name", "capture_video", "compile")
 RANGES = [  # (flags, test, rule); the teacher checks its own
     ("seed seed_steps unsup_steps checkpoint_every buffer_size query_recent_episodes "
      "critic_reset_updates", lambda v: v >= 0, ">= 0"),
@@ -680,7 +682,9 @@ def parse_args():
                 saved = json.load(f)
         except (OSError, ValueError) as error:
             fail(f"--resume {given.resume!r}: no config.json there ({error})")
-        if set(saved) != {f.name for f in fields(Args)}:
+        names = {f.name for f in fields(Args)}
+        may_lack = set(RESUME_MAY_CHANGE)  # older runs may lack them
+        if not set(saved) <= names or names - set(saved) - may_lack:
             fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
         default = Args(**saved)
     marked = [f"--{k.replace('_', '-')}" for k, v in vars(default).items()
@@ -926,6 +930,11 @@ if __name__ == "__main__":
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
     buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim).to(device)
     intrinsic_stats = RunningMeanStd()
+    sac_step = sac_update
+    r_hat = reward_model
+    if args.compile:
+        sac_step = torch.compile(sac_update, mode="reduce-overhead")
+        r_hat = torch.compile(reward_model, mode="reduce-overhead")
     # Feedback sessions
     first_session = args.seed_steps + args.unsup_steps + 1
     steps = session_steps(first_session, args.feedback_every, args.total_timesteps)
@@ -981,8 +990,8 @@ if __name__ == "__main__":
                 reset_critic(critic, critic_target, critic_optimizer)
                 for update in range(1, args.critic_reset_updates + 1):
                     batch = buffer.sample(args.batch_size)
-                    sac_update(batch, batch.rewards, actor, critic, critic_target, log_alpha,
-                               actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
+                    sac_step(batch, batch.rewards, actor, critic, critic_target, log_alpha,
+                             actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
                     if update % args.target_update_every == 0:
                         soft_update(critic, critic_target, args.tau)
 
@@ -999,8 +1008,8 @@ if __name__ == "__main__":
             reward = float(true_reward) if args.ground_truth_reward else 0.0
             if progress.pretrained and not args.ground_truth_reward:
                 with torch.no_grad():
-                    reward = reward_model(torch.as_tensor(np.concatenate([obs, action]),
-                                                          device=device)).mean()
+                    reward = r_hat(torch.as_tensor(np.concatenate([obs, action]),
+                                                   device=device)).mean()
             buffer.add(obs, action, reward, next_obs, terminated)
             for part, value in zip(progress.running_episode, (obs, action, true_reward)):
                 part.append(np.asarray(value).tolist())
@@ -1023,8 +1032,8 @@ if __name__ == "__main__":
                     rewards = intrinsic_reward(batch, buffer, args.knn_k)
                     intrinsic_stats.update(rewards)
                     rewards = rewards / max(math.sqrt(intrinsic_stats.var), 1e-8)
-                losses = sac_update(batch, rewards, actor, critic, critic_target, log_alpha,
-                                    actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
+                losses = sac_step(batch, rewards, actor, critic, critic_target, log_alpha,
+                                  actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
                 if (global_step - args.seed_steps) % args.target_update_every == 0:
                     soft_update(critic, critic_target, args.tau)
                 if global_step % 100 == 0:

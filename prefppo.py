@@ -712,7 +712,9 @@ def parse_args():
                 saved = json.load(f)
         except (OSError, ValueError) as error:
             fail(f"--resume {given.resume!r}: no config.json there ({error})")
-        if set(saved) != {f.name for f in fields(Args)}:
+        names = {f.name for f in fields(Args)}
+        may_lack = set(RESUME_MAY_CHANGE)  # older runs may lack them
+        if not set(saved) <= names or names - set(saved) - may_lack:
             fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
         default = Args(**saved)
     marked = [f"--{k.replace('_', '-')}" for k, v in vars(default).items()

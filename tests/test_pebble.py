@@ -96,6 +96,34 @@ def test_sac_update_steps_each_network_on_its_own_loss_only():
     assert all(isinstance(opt, torch.optim.Adam) and opt.defaults["fused"] for opt in (actor_opt, critic_opt, alpha_opt))
 
 
+def test_the_compiled_sac_update_is_the_eager_one_traced():
+    """--compile wraps sac_update itself. Traced by torch.compile with the aot_eager backend (the same kernels, so
+    the same random draws; on a GPU inductor's kernels and CUDA graphs run the same graphs), five updates from the
+    same start give the eager run's losses and weights."""
+    import torch._dynamo
+
+    def five_updates(update):
+        torch.manual_seed(0)
+        actor, critic, target = pebble.Actor(3, 2, 16, 2), *(pebble.TwinCritic(3, 2, 16, 2) for _ in range(2))
+        log_alpha = torch.zeros((), requires_grad=True)
+        optimizers = [pebble.adam(p, 1e-3) for p in (actor.parameters(), critic.parameters(), [log_alpha])]
+        batch = pebble.Batch(torch.randn(8, 3), torch.rand(8, 2) * 2 - 1, torch.randn(8, 1), torch.randn(8, 3),
+                             torch.zeros(8, 1))
+        losses = [update(batch, batch.rewards, actor, critic, target, log_alpha, *optimizers, 0.99)
+                  for _ in range(5)]
+        return losses, [*actor.parameters(), *critic.parameters(), log_alpha]
+
+    torch._dynamo.reset()
+    eager_losses, eager_weights = five_updates(pebble.sac_update)
+    losses, weights = five_updates(torch.compile(pebble.sac_update, backend="aot_eager"))
+    for eager, compiled in zip(eager_losses, losses):
+        assert {name: pytest.approx(value.item(), rel=1e-5, abs=1e-6) for name, value in eager.items()} == {
+            name: value.item() for name, value in compiled.items()}
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in zip(eager_weights, weights))
+    torch.manual_seed(0)
+    assert not torch.allclose(eager_weights[0], pebble.Actor(3, 2, 16, 2).net[0].weight)  # the updates moved it
+
+
 def test_choices_are_the_modules_names():
     annotations = pebble.Args.__annotations__
     assert typing.get_args(annotations["teacher"]) == (*TEACHERS, "human")  # human: a person, label_server.py

@@ -6,6 +6,7 @@ import io
 import json
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -264,6 +265,13 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
     result = run_script(script, tmp_path / "x", "--resume", str(older))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "its config.json is of another version of this script" in result.stderr
+    lacking = tmp_path / "lacking"  # an older run without a flag that may change on resume (--compile's way in)
+    shutil.copytree(existing, lacking)
+    config = json.loads((existing / "config.json").read_text())
+    del config["capture_video"]
+    (lacking / "config.json").write_text(json.dumps(config))
+    result = run_script(script, tmp_path / "x", "--resume", str(lacking))
+    assert result.returncode == 2 and "has already finished" in result.stderr  # accepted, then found finished
 
 
 def limit_file_size():
