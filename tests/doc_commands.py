@@ -224,11 +224,11 @@ def check(words: list[str]) -> str | None:
 
 
 NUMBERS = dict(zip(("one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten"), range(1, 11)))
-COUNT = re.compile(rf"\b(\d+|{'|'.join(NUMBERS)}) seeds\b|\bseeds (\d+)-(\d+)\b", re.I)
+COUNT = re.compile(rf"\b(\d+|{'|'.join(NUMBERS)}) seeds?\b|\bseeds (\d+)-(\d+)\b", re.I)
 
 
 def stated_seeds(text: str) -> list[tuple[int, str]]:
-    """The seed counts a piece of a page states, in order, with their words: "N seeds" ("five seeds"), "seeds A-B",
+    """The seed counts a piece of a page states, in order, with their words: "N seeds" ("five seeds", "1 seed"), "seeds A-B",
     and the cells of a table's "seeds" column ("5", "1 2 3 4 5"; "5 / 3" states both). Code spans say nothing."""
     found, column = [], None
     for line in re.sub(r"`[^`]*`", " ", text).splitlines():
