@@ -120,6 +120,15 @@ def test_our_flags_become_the_reference_settings_of_the_same_experiment():
     assert settings(sac)["num_unsup_steps"] == "9000"  # the same pre-training as ours
 
 
+def reference_files(tmp_path, eval_csv: str, train_csv: str):
+    """A reference run's own folder (bpref/) holding these eval.csv and train.csv."""
+    bpref = tmp_path / "bpref"
+    bpref.mkdir()
+    (bpref / "eval.csv").write_text(eval_csv)
+    (bpref / "train.csv").write_text(train_csv)
+    return bpref
+
+
 def test_a_meta_world_task_becomes_the_reference_v2_task_with_the_task_preset():
     args = reference_run.Args(output_dir="x", env_id="button-press", seed=2, teacher="oracle", max_feedback=900,
                               feedback_per_session=50, total_timesteps=100000)
@@ -133,12 +142,10 @@ def test_a_meta_world_task_becomes_the_reference_v2_task_with_the_task_preset():
 
 
 def test_meta_world_success_is_read_back_as_a_rate_and_the_loggers_empty_rows_are_skipped(tmp_path):
-    bpref = tmp_path / "bpref"
-    bpref.mkdir()
-    (bpref / "eval.csv").write_text("episode,episode_reward,step,success_rate\n"
-                                    "20.0,300.0,10000,30.0\n40.0,900.0,20000,100.0\n")
-    (bpref / "train.csv").write_text("episode,step,total_feedback\n20.0,10000,0.0\n21.0,10500,50.0\n"
-                                     "40.0,20000,100.0\n0.0,20000,0.0\n")  # its last row: an empty dump
+    bpref = reference_files(tmp_path, "episode,episode_reward,step,success_rate\n"
+                                      "20.0,300.0,10000,30.0\n40.0,900.0,20000,100.0\n",
+                            "episode,step,total_feedback\n20.0,10000,0.0\n21.0,10500,50.0\n"
+                            "40.0,20000,100.0\n0.0,20000,0.0\n")  # its last train row: an empty dump
     rows = reference_run.converted_rows(bpref, [1.0, 2.0])
     assert [(r["success_rate"], r["feedback"]) for r in rows] == [(0.3, 50.0), (1.0, 100.0)]
 
@@ -246,12 +253,10 @@ def test_the_reference_prefppo_training_episodes_become_rows_per_wave(tmp_path):
 
 
 def test_the_reference_results_are_read_back_in_our_columns(tmp_path):
-    bpref = tmp_path / "bpref"
-    bpref.mkdir()
-    (bpref / "eval.csv").write_text("episode,episode_reward,step,true_episode_reward\n"
-                                    "10.0,-3.0,10000,150.5\n20.0,-1.0,20000,300.25\n")
-    (bpref / "train.csv").write_text("step,total_feedback,true_episode_reward\n10000,0.0,1\n11000,100.0,1\n"
-                                     "20000,100.0,1\n21000,200.0,1\n")
+    bpref = reference_files(tmp_path, "episode,episode_reward,step,true_episode_reward\n"
+                                      "10.0,-3.0,10000,150.5\n20.0,-1.0,20000,300.25\n",
+                            "step,total_feedback,true_episode_reward\n10000,0.0,1\n11000,100.0,1\n"
+                            "20000,100.0,1\n21000,200.0,1\n")
     rows = reference_run.converted_rows(bpref, [61.5])
     assert [(r["step"], r["episode_return"], r["feedback"]) for r in rows] == [(10000, 150.5, 100.0),
                                                                              (20000, 300.25, 200.0)]
