@@ -83,11 +83,12 @@ def main():
     print("| run | width x 2, batch | steps/s | first 1000 steps (s) | / pebble.py eager |\n|---|---|---:|---:|---:|")
     for hidden in args.sizes:
         eager = pebble_sac(hidden, args.steps, False, work / f"eager_{hidden}")
-        rows = {"pebble.py eager": eager, "pebble.py --compile": pebble_sac(hidden, args.steps, True,
-                                                                             work / f"compiled_{hidden}")}
+        runs = {"pebble.py eager": lambda: eager,
+                "pebble.py --compile": lambda: pebble_sac(hidden, args.steps, True, work / f"compiled_{hidden}")}
         if args.cleanrl:
-            rows = {"CleanRL SAC eager": cleanrl_sac(args.cleanrl, hidden, args.steps, work)} | rows
-        for name, (rate, first) in rows.items():
+            runs["CleanRL SAC eager"] = lambda: cleanrl_sac(args.cleanrl, hidden, args.steps, work)
+        for name, run in runs.items():  # each row printed as soon as it is measured
+            rate, first = run()
             print(f"| {name} | {hidden}, {hidden} | {rate:.1f} | {first:.1f} | {rate / eager[0]:.2f} |", flush=True)
     if args.no_whole_run:
         return
