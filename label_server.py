@@ -469,7 +469,7 @@ def serve(run_dir: str, host: str = "127.0.0.1", port: int = 8000) -> LabelServe
 def main():
     args = tyro.cli(Args)
     stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-    for stop in stops[1:]:  # stop as Ctrl+C does, so that page_url.txt is removed
+    for stop in stops:  # as Ctrl+C, also where SIGINT came ignored (a background job)
         signal.signal(stop, signal.default_int_handler)
     signal.pthread_sigmask(signal.SIG_BLOCK, stops)  # held until the server can be closed
     try:
