@@ -1,6 +1,7 @@
 """Running pebble.py / prefppo.py as a user would, and reading what a run wrote."""
 
 import csv
+import json
 import os
 import re
 import subprocess
@@ -17,6 +18,44 @@ def run_script(script: str, out: Path, *flags: str, timeout: int = 600, env: dic
     """The script as a user runs it; `env` adds or overrides environment variables."""
     cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV | (env or {}), cwd=ROOT)
+
+
+# Runs each command line of argv (a JSON list) through the script's __main__, as `python SCRIPT ARGS` does,
+# and prints (exit code, stdout, stderr) per command line as JSON: the exit code as the interpreter gives it
+# (SystemExit's code, 1 and the message or the traceback otherwise)
+ONE_INTERPRETER = """
+import contextlib, io, json, runpy, sys, traceback
+script, argvs = sys.argv[1], json.loads(sys.argv[2])
+results = []
+for argv in argvs:
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        sys.argv = [script, *argv]
+        try:
+            runpy.run_path(script, run_name="__main__")
+            code = 0
+        except SystemExit as end:
+            code = 0 if end.code is None else end.code
+            if not isinstance(code, int):  # sys.exit("message")
+                print(code, file=sys.stderr)
+                code = 1
+        except BaseException:
+            traceback.print_exc()
+            code = 1
+    results.append([code, stdout.getvalue(), stderr.getvalue()])
+print(json.dumps(results))
+"""
+
+
+def run_in_one_interpreter(script: str, runs: list[tuple[Path, list[str]]]) -> list[subprocess.CompletedProcess]:
+    """Command lines that must end before any work (a user's mistakes), each `script --output-dir OUT FLAGS`, run
+    one after another in one Python process so that torch is imported once, not once per command line."""
+    argvs = [["--output-dir", str(out), *flags] for out, flags in runs]
+    cmd = [sys.executable, "-c", ONE_INTERPRETER, str(ROOT / script), json.dumps(argvs)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return [subprocess.CompletedProcess(argv, code, stdout, stderr)
+            for argv, (code, stdout, stderr) in zip(argvs, json.loads(done.stdout))]
 
 
 def scalars(out: Path) -> dict[str, list[tuple[int, float]]]:
@@ -109,15 +148,11 @@ def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
         time.sleep(0.02)
 
 
-def assert_inputs_standardised_by_labelled_states(script: str, out: Path, *flags: str, obs_dim: int):
-    """A run with these flags and 3 sessions: its final reward model
-    standardises observations by the mean and std of every state of the kept labelled segments (D after the last
-    session), clips at 10, and leaves actions as they are."""
+def assert_inputs_standardised_by_labelled_states(out: Path, obs_dim: int):
+    """The final reward model of the finished run in `out` standardises observations by the mean and std of every
+    state of the kept labelled segments (D after the last session), clips at 10, and leaves actions as they are."""
     import torch
 
-    result = run_script(script, out, *flags)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert len(session_lines(result.stdout)) == 3
     labels = saved_labels(out)
     states = np.concatenate([s[f"obs{side}"][s["keep"]] for s in labels for side in (0, 1)]).reshape(-1, obs_dim)
     saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]

@@ -18,7 +18,7 @@ import pebble
 from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes, session_steps
 from sim_teacher import TEACHERS, make_teacher
 from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve, eval_rows,
-                           assert_pebble_phases, run_script, scalars, saved_labels, session_lines)
+                           assert_pebble_phases, run_in_one_interpreter, run_script, scalars, saved_labels, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
         "--reward-batch-size", "32", "--eval-episodes", "1"]
@@ -410,19 +410,15 @@ def test_train_reward_feeds_the_members_the_normalised_inputs_the_model_predicts
     assert accuracy > 0.75  # chance: 0.5
 
 
-def test_configuration_records_every_field_of_the_teacher(tmp_path):
+def test_configuration_records_every_field_of_the_teacher(schedule_runs):
     myopic = pebble.task_defaults("Pendulum-v1", "myopic")
     resolved = {name: getattr(myopic, name) for name in vars(myopic) if name.startswith("teacher_")}
     assert resolved == {"teacher_beta": math.inf, "teacher_gamma": 0.9, "teacher_eps_mistake": 0.0,
                         "teacher_eps_skip": 0.0, "teacher_eps_equal": 0.0, "teacher_bias": 0.0}
     assert pebble.task_defaults("Pendulum-v1", "skip").teacher_eps_skip == 0.1
-    out = tmp_path / "myopic"
-    result = run_pebble(out, *PENDULUM, "--total-timesteps", "500", "--teacher", "myopic", "--teacher-eps-mistake",
-                        "0.1", "--ground-truth-reward")
-    assert result.returncode == 0, result.stderr[-2000:]
-    config = json.loads((out / "config.json").read_text())
+    config = json.loads((schedule_runs["stoc-mistake-myopic"][0] / "config.json").read_text())
     assert {k: config[f"teacher_{k}"] for k in ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")} == \
-        {"beta": math.inf, "gamma": 0.9, "eps_mistake": 0.1, "eps_skip": 0.0, "eps_equal": 0.0}
+        {"beta": 1.0, "gamma": 0.9, "eps_mistake": 0.1, "eps_skip": 0.0, "eps_equal": 0.0}
 
 
 # ---------------------------------------------------------------- smoke runs that reach every phase
@@ -480,38 +476,49 @@ PENDULUM = ["--env-id", "Pendulum-v1", "--total-timesteps", "1100", "--seed-step
             "--eval-every", "1100", *TINY]
 
 
-@pytest.mark.parametrize(
-    "teacher, sampler",
-    [("oracle", "uniform"), ("stoc", "disagreement"), ("mistake", "entropy"), ("skip", "coverage"),
-     ("equal", "disagreement-coverage"), ("myopic", "entropy-coverage")],
-)
-def test_every_teacher_and_sampler_runs_a_full_schedule(tmp_path, teacher, sampler):
-    out = tmp_path / f"{teacher}_{sampler}"
-    # skip: with eps_skip = 0.1, delta_skip (~ -6) is above nearly every 10-step Pendulum return, so whole
-    # sessions can be skipped by chance and the sampler never runs; 0.5 (~ -30) keeps about half
-    extra = ["--teacher-eps-skip", "0.5"] if teacher == "skip" else []
-    result = run_pebble(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler, *extra)
+# Three full schedules cover every teacher's answers (the irrationalities combined in one), every sampler that a
+# smoke run does not (uniform starts each run, disagreement is the default, entropy below) and both non-uniform
+# schedules. Sessions after 400, 700, 1000 of T = 1100 steps, 10 per session: decay int(20 (T - t) / T) = 12, 7, 1
+# (20 of the 30 labels); increase int(5 T / (T - t + 1)) = 7, 13, then 54 capped at the 10 left. skip: with
+# eps_skip = 0.1, delta_skip (~ -6) is above nearly every 10-step Pendulum return, so whole sessions can be skipped
+# by chance and the sampler never runs; 0.5 (~ -30) keeps about half
+SCHEDULE_RUNS = {
+    "equal": ["--teacher", "equal", "--sampler", "disagreement-coverage", "--schedule", "increase"],
+    "skip": ["--teacher", "skip", "--teacher-eps-skip", "0.5", "--sampler", "entropy-coverage", "--schedule", "decay"],
+    "stoc-mistake-myopic": ["--teacher", "myopic", "--teacher-beta", "1", "--teacher-eps-mistake", "0.1",
+                            "--sampler", "coverage"],
+}
+
+
+@pytest.fixture(scope="module")
+def schedule_runs(tmp_path_factory):
+    """name -> (output dir, result) of each of SCHEDULE_RUNS, and "again": stoc-mistake-myopic's run repeated."""
+    runs = {}
+    for name, flags in [*SCHEDULE_RUNS.items(), ("again", SCHEDULE_RUNS["stoc-mistake-myopic"])]:
+        out = tmp_path_factory.mktemp("schedules") / name
+        runs[name] = out, run_pebble(out, *PENDULUM, *flags, "--no-cuda")
+    return runs
+
+
+@pytest.mark.parametrize("name", SCHEDULE_RUNS)
+def test_every_teacher_and_sampler_runs_a_full_schedule(name, schedule_runs):
+    out, result = schedule_runs[name]
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(session_lines(result.stdout)) == 3  # each session trains r_hat, then relabels
     labels = saved_labels(out)
-    assert sum(len(s["y"]) for s in labels) == 30
+    assert sum(len(s["y"]) for s in labels) == (20 if name == "skip" else 30)
     y = np.concatenate([s["y"] for s in labels])
     keep = np.concatenate([s["keep"] for s in labels])
-    if teacher == "skip":  # Pendulum's returns are negative: many segments fall under delta_skip
+    if name == "skip":  # Pendulum's returns are negative: many segments fall under delta_skip
         assert (~keep).any() and np.isnan(y[~keep]).all()
     else:
         assert keep.all()
-    if teacher == "equal":
-        assert (y == 0.5).any()
+    assert (y == 0.5).any() == (name == "equal")
 
 
-@pytest.mark.parametrize("schedule, sizes", [("decay", [12, 7, 1]), ("increase", [7, 13, 10])])
-def test_decay_and_increase_sessions_ask_the_reference_codes_numbers(tmp_path, schedule, sizes):
-    # sessions after 400, 700, 1000 of T = 1100 steps, 10 per session: decay int(20 (T - t) / T) = 12, 7, 1 (20 of
-    # the 30 labels); increase int(5 T / (T - t + 1)) = 7, 13, then 54 capped at the 10 left
-    out = tmp_path / schedule
-    result = run_pebble(out, *PENDULUM, "--schedule", schedule)
-    assert result.returncode == 0, result.stderr[-3000:]
+@pytest.mark.parametrize("schedule, name, sizes", [("decay", "skip", [12, 7, 1]), ("increase", "equal", [7, 13, 10])])
+def test_decay_and_increase_sessions_ask_the_reference_codes_numbers(schedule, name, sizes, schedule_runs):
+    out, result = schedule_runs[name]
     assert [len(s["y"]) for s in saved_labels(out)] == sizes
     assert schedule_sizes(schedule, 30, 10, np.array([400, 700, 1000]), 1100).tolist() == sizes
     assert ("note: only 20 of the 30 labels" in result.stdout) == (schedule == "decay")
@@ -549,8 +556,8 @@ def test_ground_truth_reward_runs_sac_with_pretraining_and_no_teacher(tmp_path):
     assert int(eval_rows(out)[-1]["feedback"]) == 0
 
 
-def test_reward_inputs_are_standardised_by_the_labelled_states(tmp_path):
-    assert_inputs_standardised_by_labelled_states("pebble.py", tmp_path / "norm", *PENDULUM, obs_dim=3)
+def test_reward_inputs_are_standardised_by_the_labelled_states(schedule_runs):
+    assert_inputs_standardised_by_labelled_states(schedule_runs["stoc-mistake-myopic"][0], obs_dim=3)
 
 
 def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rate(tmp_path):
@@ -567,12 +574,11 @@ def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rat
     assert json.loads((out / "config.json").read_text())["alpha_lr"] == 1e-4
 
 
-def test_same_seed_gives_the_same_run_on_cpu(tmp_path):
-    flags = [*PENDULUM, "--total-timesteps", "800", "--eval-every", "400", "--sampler", "entropy", "--no-cuda"]
-    first, second = run_pebble(tmp_path / "a", *flags), run_pebble(tmp_path / "b", *flags)
-    assert first.returncode == second.returncode == 0
-    assert "note: only 20 of the 30 labels fit in the run" in first.stdout  # sessions at 401, 701
-    assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
+def test_same_seed_gives_the_same_run_on_cpu(schedule_runs):
+    (first, result), (second, again) = schedule_runs["stoc-mistake-myopic"], schedule_runs["again"]
+    assert result.returncode == again.returncode == 0
+    assert eval_curve(first) == eval_curve(second)
+    assert [s["y"].tolist() for s in saved_labels(first)] == [s["y"].tolist() for s in saved_labels(second)]
 
 
 # ---------------------------------------------------------------- bad input: one line, non-zero exit, nothing run
@@ -610,18 +616,29 @@ BAD_INPUTS = [  # our own checks: one line
 ]
 
 
+@pytest.fixture(scope="module")
+def refused(tmp_path_factory):
+    """Each command line of TYRO_ERRORS and BAD_INPUTS, run in one interpreter: flags -> (result, its output dir)."""
+    cases = [flags for flags, _ in TYRO_ERRORS + BAD_INPUTS]
+    outs = [tmp_path_factory.mktemp("refused") / "run" for _ in cases]
+    results = run_in_one_interpreter("pebble.py", list(zip(outs, cases)))
+    return {" ".join(flags): (result, out) for flags, result, out in zip(cases, results, outs)}
+
+
 @pytest.mark.parametrize("flags, message", TYRO_ERRORS, ids=[" ".join(f) for f, _ in TYRO_ERRORS])
-def test_flags_tyro_cannot_parse_are_tyro_s_error_and_exit_2_before_training(tmp_path, flags, message):
-    out = tmp_path / "run"
-    result = run_pebble(out, *flags, timeout=120)
+def test_flags_tyro_cannot_parse_are_tyro_s_error_and_exit_2_before_training(flags, message, refused):
+    result, out = refused[" ".join(flags)]
     assert_refused_by_tyro(result, message, out)
 
 
 @pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])
-def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(tmp_path, flags, message):
-    out = tmp_path / "run"
-    result = run_pebble(out, *flags, timeout=120)
+def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(flags, message, refused):
+    result, out = refused[" ".join(flags)]
     assert_rejected(result, message, out)
+
+
+def test_a_bad_input_ends_the_process_itself_with_one_line(tmp_path):  # the cases above share one process
+    assert_rejected(run_pebble(tmp_path / "run", "--seed", "-1", timeout=120), "--seed must be >= 0", tmp_path / "run")
 
 
 def test_existing_run_directory_is_not_overwritten(tmp_path):

@@ -17,7 +17,7 @@ import prefppo
 from samplers import planned_labels, schedule_sizes
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
 from tests.helpers import (ENV, ROOT, assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve,
-                           eval_rows, run_script, saved_labels, scalars, session_lines)
+                           eval_rows, run_in_one_interpreter, run_script, saved_labels, scalars, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
         "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"]
@@ -427,28 +427,41 @@ PENDULUM = ["--env-id", "Pendulum-v1", "--total-timesteps", "4800", "--unsup-ste
             "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "4800", *TINY]
 
 
-@pytest.mark.parametrize(
-    "teacher, sampler",
-    [("oracle", "uniform"), ("stoc", "disagreement"), ("mistake", "entropy"), ("skip", "disagreement"),
-     ("equal", "entropy-coverage"), ("myopic", "uniform")],
-)
-def test_every_teacher_and_the_samplers_run_a_full_schedule(tmp_path, teacher, sampler):
-    out = tmp_path / f"{teacher}_{sampler}"
-    result = run_prefppo(out, *PENDULUM, "--teacher", teacher, "--sampler", sampler)
+# Full schedules: every teacher's answers (stoc, mistake and myopic combined in one) and the samplers
+TEACHER_RUNS = {
+    "oracle": [],
+    "equal": ["--teacher", "equal", "--sampler", "entropy-coverage"],
+    "skip": ["--teacher", "skip", "--sampler", "uniform"],
+    "stoc-mistake-myopic": ["--teacher", "myopic", "--teacher-beta", "1", "--teacher-eps-mistake", "0.1",
+                            "--sampler", "entropy"],
+}
+
+
+@pytest.fixture(scope="module")
+def teacher_runs(tmp_path_factory):
+    """name -> (output dir, result) of each of TEACHER_RUNS, and "again": the oracle's run repeated."""
+    runs = {}
+    for name, flags in [*TEACHER_RUNS.items(), ("again", TEACHER_RUNS["oracle"])]:
+        out = tmp_path_factory.mktemp("teachers") / name
+        runs[name] = out, run_prefppo(out, *PENDULUM, *flags)
+    return runs
+
+
+@pytest.mark.parametrize("name", TEACHER_RUNS)
+def test_every_teacher_and_the_samplers_run_a_full_schedule(name, teacher_runs):
+    out, result = teacher_runs[name]
     assert result.returncode == 0, result.stderr[-3000:]
     assert len(session_lines(result.stdout)) == 3
     labels = saved_labels(out)
     y = np.concatenate([s["y"] for s in labels])
     keep = np.concatenate([s["keep"] for s in labels])
     assert len(y) == 30
-    if teacher == "skip":
-        assert (~keep).any() and np.isnan(y[~keep]).all()
-    if teacher == "equal":
-        assert (y == 0.5).any()
+    assert (~keep).any() == (name == "skip") and np.isnan(y[~keep]).all()
+    assert (y == 0.5).any() == (name == "equal")
 
 
-def test_reward_inputs_are_standardised_by_the_labelled_states(tmp_path):
-    assert_inputs_standardised_by_labelled_states("prefppo.py", tmp_path / "norm", *PENDULUM, obs_dim=3)
+def test_reward_inputs_are_standardised_by_the_labelled_states(teacher_runs):
+    assert_inputs_standardised_by_labelled_states(teacher_runs["oracle"][0], obs_dim=3)
 
 
 def test_raw_reward_inputs_edit_gives_the_reward_model_raw_inputs(tmp_path):
@@ -461,9 +474,8 @@ def test_raw_reward_inputs_edit_gives_the_reward_model_raw_inputs(tmp_path):
     assert saved["input_clip"].item() == math.inf
 
 
-def test_stale_reward_inputs_edit_keeps_the_normalised_observations_of_their_step(tmp_path):
-    ours, stale = tmp_path / "ours", tmp_path / "stale"
-    assert run_prefppo(ours, *PENDULUM).returncode == 0
+def test_stale_reward_inputs_edit_keeps_the_normalised_observations_of_their_step(tmp_path, teacher_runs):
+    ours, stale = teacher_runs["oracle"][0], tmp_path / "stale"
     result = run_edited("stale-reward-inputs", stale, *PENDULUM)
     assert result.returncode == 0, result.stderr[-3000:]
     saved = torch.load(stale / "final_model.pt", weights_only=True)["reward_model"]
@@ -505,14 +517,14 @@ def test_no_use_sde_trains_a_state_independent_std_with_the_compiled_loss(tmp_pa
     assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
 
-def test_same_seed_gives_the_same_run_on_cpu_and_no_bootstrap_time_limits_another(tmp_path):
-    flags = [*PENDULUM, "--total-timesteps", "3200", "--eval-every", "1600"]
-    first, second = run_prefppo(tmp_path / "a", *flags), run_prefppo(tmp_path / "b", *flags)
+def test_same_seed_gives_the_same_run_on_cpu_and_no_bootstrap_time_limits_another(tmp_path, teacher_runs):
+    (first, result), (second, again) = teacher_runs["oracle"], teacher_runs["again"]
     # Pendulum ends every episode by its time limit: the reference's terminal ends change the updates
-    terminal = run_edited("no-bootstrap-time-limits", tmp_path / "c", *flags)
-    assert first.returncode == second.returncode == terminal.returncode == 0, terminal.stderr[-3000:]
-    assert eval_curve(tmp_path / "a") == eval_curve(tmp_path / "b")
-    assert eval_curve(tmp_path / "c") != eval_curve(tmp_path / "a")
+    terminal = run_edited("no-bootstrap-time-limits", tmp_path / "c", *PENDULUM)
+    assert result.returncode == again.returncode == terminal.returncode == 0, terminal.stderr[-3000:]
+    assert eval_curve(first) == eval_curve(second)
+    assert [s["y"].tolist() for s in saved_labels(first)] == [s["y"].tolist() for s in saved_labels(second)]
+    assert eval_curve(tmp_path / "c") != eval_curve(first)
 
 
 TYRO_ERRORS = [  # tyro's own checks: its error box
@@ -541,18 +553,29 @@ BAD_INPUTS = [  # our own checks: one line
 ]
 
 
+@pytest.fixture(scope="module")
+def refused(tmp_path_factory):
+    """Each command line of TYRO_ERRORS and BAD_INPUTS, run in one interpreter: flags -> (result, its output dir)."""
+    cases = [flags for flags, _ in TYRO_ERRORS + BAD_INPUTS]
+    outs = [tmp_path_factory.mktemp("refused") / "run" for _ in cases]
+    results = run_in_one_interpreter("prefppo.py", list(zip(outs, cases)))
+    return {" ".join(flags): (result, out) for flags, result, out in zip(cases, results, outs)}
+
+
 @pytest.mark.parametrize("flags, message", TYRO_ERRORS, ids=[" ".join(f) for f, _ in TYRO_ERRORS])
-def test_flags_tyro_cannot_parse_are_tyro_s_error_and_exit_2_before_training(tmp_path, flags, message):
-    out = tmp_path / "run"
-    result = run_prefppo(out, *flags, timeout=120)
+def test_flags_tyro_cannot_parse_are_tyro_s_error_and_exit_2_before_training(flags, message, refused):
+    result, out = refused[" ".join(flags)]
     assert_refused_by_tyro(result, message, out)
 
 
 @pytest.mark.parametrize("flags, message", BAD_INPUTS, ids=[" ".join(f) for f, _ in BAD_INPUTS])
-def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(tmp_path, flags, message):
-    out = tmp_path / "run"
-    result = run_prefppo(out, *flags, timeout=120)
+def test_bad_input_is_one_line_and_a_nonzero_exit_before_training(flags, message, refused):
+    result, out = refused[" ".join(flags)]
     assert_rejected(result, message, out)
+
+
+def test_a_bad_input_ends_the_process_itself_with_one_line(tmp_path):  # the cases above share one process
+    assert_rejected(run_prefppo(tmp_path / "run", "--seed", "-1", timeout=120), "--seed must be >= 0", tmp_path / "run")
 
 
 def test_help_lists_the_choices_and_the_tasks_preset(tmp_path):

@@ -17,7 +17,7 @@ import torch
 
 import pebble
 import sim_teacher
-from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_script, saved_labels, start_script, wait_for
+from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_in_one_interpreter, run_script, saved_labels, start_script, wait_for
 
 # Tiny walker-walk runs. pebble: sessions at 1101, 1601, 2101, 2601, checkpoints at 1300 (mid-episode)
 # and 2600; prefppo: sessions at 2000, 3000, 4000, checkpoints after the rollouts ending at 2000 and 4000
@@ -237,41 +237,38 @@ def test_prefppo_nan_mid_rollout_keeps_the_last_good_checkpoint(tmp_path):
 def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_path, uninterrupted):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a directory")
-    result = run_script(script, blocker / "run", *RUNS[script])
-    assert result.returncode == 2 and result.stderr.startswith("error: [Errno 20] Not a directory")
-    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
-
     existing = uninterrupted[script]
-    before = {p: p.stat().st_mtime_ns for p in existing.rglob("*")}
-    result = run_script(script, existing, *RUNS[script])
-    assert result.returncode == 2 and "already holds a run" in result.stderr
-    assert {p: p.stat().st_mtime_ns for p in existing.rglob("*")} == before
-
-    result = run_script(script, tmp_path / "x", "--resume", str(existing), "--seed", "7")
-    assert result.returncode == 2 and "error: --seed cannot change when resuming" in result.stderr
-    result = run_script(script, tmp_path / "x", "--resume", str(tmp_path))
-    assert result.returncode == 2 and "no config.json there" in result.stderr
     stopped = tmp_path / "stopped"  # a run stopped before its first checkpoint
     stopped.mkdir()
     (stopped / "config.json").write_text((existing / "config.json").read_text())
-    result = run_script(script, tmp_path / "x", "--resume", str(stopped))
-    assert result.returncode == 2 and "no checkpoint.pt there" in result.stderr
     older = tmp_path / "older"  # a run of an older version, without a field it has now
     older.mkdir()
     (older / "checkpoint.pt").write_bytes(b"")
     config = json.loads((existing / "config.json").read_text())
     del config["total_timesteps"]
     (older / "config.json").write_text(json.dumps(config))
-    result = run_script(script, tmp_path / "x", "--resume", str(older))
-    assert result.returncode == 2 and "Traceback" not in result.stderr
-    assert "its config.json is of another version of this script" in result.stderr
     lacking = tmp_path / "lacking"  # an older run without a flag that may change on resume (--compile's way in)
     shutil.copytree(existing, lacking)
     config = json.loads((existing / "config.json").read_text())
     del config["capture_video"]
     (lacking / "config.json").write_text(json.dumps(config))
-    result = run_script(script, tmp_path / "x", "--resume", str(lacking))
-    assert result.returncode == 2 and "has already finished" in result.stderr  # accepted, then found finished
+    before = {p: p.stat().st_mtime_ns for p in existing.rglob("*")}
+    into_file, into_run, new_seed, no_config, no_checkpoint, other_version, lacking_flag = run_in_one_interpreter(
+        script, [(blocker / "run", RUNS[script]), (existing, RUNS[script]),
+                 (tmp_path / "x", ["--resume", str(existing), "--seed", "7"]), (tmp_path / "x", ["--resume", str(tmp_path)]),
+                 (tmp_path / "x", ["--resume", str(stopped)]), (tmp_path / "x", ["--resume", str(older)]),
+                 (tmp_path / "x", ["--resume", str(lacking)])])
+
+    assert into_file.returncode == 2 and into_file.stderr.startswith("error: [Errno 20] Not a directory")
+    assert len(into_file.stderr.strip().splitlines()) == 1 and "Traceback" not in into_file.stderr
+    assert into_run.returncode == 2 and "already holds a run" in into_run.stderr
+    assert {p: p.stat().st_mtime_ns for p in existing.rglob("*")} == before
+    assert new_seed.returncode == 2 and "error: --seed cannot change when resuming" in new_seed.stderr
+    assert no_config.returncode == 2 and "no config.json there" in no_config.stderr
+    assert no_checkpoint.returncode == 2 and "no checkpoint.pt there" in no_checkpoint.stderr
+    assert other_version.returncode == 2 and "Traceback" not in other_version.stderr
+    assert "its config.json is of another version of this script" in other_version.stderr
+    assert lacking_flag.returncode == 2 and "has already finished" in lacking_flag.stderr  # accepted, then finished
 
 
 def limit_file_size():

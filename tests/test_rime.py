@@ -12,7 +12,7 @@ import torch
 import torch.nn as nn
 
 import rime
-from tests.helpers import eval_rows, run_script, saved_labels, scalars, session_lines
+from tests.helpers import eval_rows, run_in_one_interpreter, run_script, saved_labels, scalars, session_lines
 
 ARGS = dict(rime_alpha=0.5, rime_beta_max=3.0, rime_beta_min=1.0, rime_decay_epochs=60, rime_flip_eps=0.001)
 
@@ -168,12 +168,16 @@ def test_a_tiny_run_reaches_every_phase(tmp_path):
     assert [int(row["step"]) for row in eval_rows(out)] == [1000, 2000, 3000]
 
 
-@pytest.mark.parametrize("flag, value, message", [
+RIME_RANGES = [
     ("--rime-decay-epochs", "0", "--rime-decay-epochs must be >= 1, got 0"),
     ("--rime-flip-eps", "1.5", "--rime-flip-eps must be in (0, 1), got 1.5"),
     ("--rime-alpha", "-1", "--rime-alpha must be >= 0, got -1.0"),
-])
-def test_rime_s_flags_out_of_range_are_one_line_before_any_work(tmp_path, flag, value, message):
-    result = run_script("rime.py", tmp_path / "run", flag, value, timeout=120)
-    assert result.returncode == 2 and result.stderr == f"error: {message}\n"
-    assert not (tmp_path / "run").exists()
+]
+
+
+def test_rime_s_flags_out_of_range_are_one_line_before_any_work(tmp_path):
+    outs = [tmp_path / flag / "run" for flag, _, _ in RIME_RANGES]
+    results = run_in_one_interpreter("rime.py", [(out, [flag, value]) for out, (flag, value, _) in zip(outs, RIME_RANGES)])
+    for (_, _, message), result, out in zip(RIME_RANGES, results, outs):
+        assert result.returncode == 2 and result.stderr == f"error: {message}\n"
+        assert not out.exists()
