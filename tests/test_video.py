@@ -14,9 +14,9 @@ import prefppo
 from tests.helpers import ENV, assert_rejected, eval_curve, eval_rows, run_script
 
 NO_DISPLAY = {"MUJOCO_GL": "glfw", "DISPLAY": "", "WAYLAND_DISPLAY": ""}
-PEBBLE_TINY = ["--env-id", "walker-walk", "--total-timesteps", "1200", "--seed-steps", "500", "--unsup-steps", "200",
-               "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
-               "--eval-every", "1200", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
+PEBBLE_TINY = ["--env-id", "Reacher-v5", "--total-timesteps", "400", "--seed-steps", "100", "--unsup-steps", "100",
+               "--feedback-every", "100", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
+               "--eval-every", "400", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
                "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"]
 PREFPPO_TINY = ["--env-id", "InvertedPendulum-v5", "--ground-truth-reward", "--total-timesteps", "1000", "--unsup-steps", "500",
                 "--num-envs", "2", "--num-steps", "250", "--minibatch-size", "125", "--eval-every", "1000",
@@ -50,10 +50,10 @@ def test_pebble_records_a_video_and_evaluates_as_without(tmp_path):
     result = run_script("pebble.py", with_video, *PEBBLE_TINY, "--capture-video", env={"MUJOCO_GL": "egl"})
     assert result.returncode == 0, result.stderr[-2000:]
     assert run_script("pebble.py", without, *PEBBLE_TINY).returncode == 0
-    assert [row["step"] for row in eval_rows(with_video)] == ["1200"]
+    assert [row["step"] for row in eval_rows(with_video)] == ["400"]
     # RecordVideo on the evaluation env: the first evaluation episode, named by the step and the env's episode number
-    assert [p.name for p in (with_video / "videos").iterdir()] == ["step_1200-episode-0.mp4"]
-    assert video_frames(with_video / "videos" / "step_1200-episode-0.mp4") == 1001  # the reset frame + 1000 steps
+    assert [p.name for p in (with_video / "videos").iterdir()] == ["step_400-episode-0.mp4"]
+    assert video_frames(with_video / "videos" / "step_400-episode-0.mp4") == 51  # the reset frame + 50 steps
     assert eval_curve(with_video) == eval_curve(without)  # rendering does not move the simulation
 
 
