@@ -465,7 +465,8 @@ def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
     out = tmp_path / "button"
     result = run_pebble(out, "--env-id", "button-press", "--total-timesteps", "1600", "--seed-steps", "300",
                         "--unsup-steps", "300", "--feedback-every", "400", "--max-feedback", "30",
-                        "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "800", *TINY)
+                        "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "800",
+                        "--sampler", "entropy", *TINY)
     rows, _ = check_complete_run(out, result, n_sessions=3, obs_dim=39, segment_len=10)
     assert all(0.0 <= float(r["success_rate"]) <= 1.0 for r in rows)
     assert json.loads((out / "config.json").read_text())["reward_epochs"] == 3
@@ -477,8 +478,8 @@ PENDULUM = ["--env-id", "Pendulum-v1", "--total-timesteps", "1100", "--seed-step
 
 
 # Three full schedules cover every teacher's answers (the irrationalities combined in one), every sampler that a
-# smoke run does not (uniform starts each run, disagreement is the default, entropy below) and both non-uniform
-# schedules. Sessions after 400, 700, 1000 of T = 1100 steps, 10 per session: decay int(20 (T - t) / T) = 12, 7, 1
+# smoke run does not (uniform starts each run, walker's uses the default disagreement, button-press's entropy) and
+# both non-uniform schedules. Sessions after 400, 700, 1000 of T = 1100 steps, 10 per session: decay int(20 (T - t) / T) = 12, 7, 1
 # (20 of the 30 labels); increase int(5 T / (T - t + 1)) = 7, 13, then 54 capped at the 10 left. skip: with
 # eps_skip = 0.1, delta_skip (~ -6) is above nearly every 10-step Pendulum return, so whole sessions can be skipped
 # by chance and the sampler never runs; 0.5 (~ -30) keeps about half
