@@ -19,12 +19,13 @@ import pebble
 import sim_teacher
 from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_in_one_interpreter, run_script, saved_labels, start_script, wait_for
 
-# Tiny walker-walk runs. pebble: sessions at 1101, 1601, 2101, a checkpoint at 1300 (mid-episode); prefppo:
-# sessions at 2000, 3000, 4000, checkpoints after the rollouts ending at 2000 and 4000
+# Tiny walker-walk runs. pebble: sessions at 1001 (after the first episode: segments come from complete ones), 1101
+# and 1201, a checkpoint at 1050 (mid-episode); prefppo: sessions at 2000, 3000, 4000, checkpoints after the
+# rollouts ending at 2000 and 4000
 RUNS = {
-    "pebble.py": ["--env-id", "walker-walk", "--total-timesteps", "2200", "--seed-steps", "500", "--unsup-steps", "600",
-                  "--feedback-every", "500", "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
-                  "--eval-every", "500", "--checkpoint-every", "1300", "--hidden-dim", "32", "--num-layers", "2",
+    "pebble.py": ["--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "200", "--unsup-steps", "800",
+                  "--feedback-every", "100", "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
+                  "--eval-every", "650", "--checkpoint-every", "1050", "--hidden-dim", "32", "--num-layers", "2",
                   "--batch-size", "32", "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"],
     "prefppo.py": ["--env-id", "walker-walk", "--total-timesteps", "5000", "--unsup-steps", "1000", "--num-envs", "2",
                    "--num-steps", "250", "--minibatch-size", "250", "--feedback-every", "1000", "--max-feedback", "40",
@@ -142,7 +143,7 @@ def test_seeded_reset_and_replayed_actions_put_the_env_back_exactly(env_id):
 def test_labels_from_an_earlier_run_join_the_preference_dataset(script, tmp_path, uninterrupted):
     flags = [f for f in RUNS[script]]
     flags[flags.index("--max-feedback") + 1] = "10"
-    flags[flags.index("--total-timesteps") + 1] = "3000" if script == "prefppo.py" else "1200"
+    flags[flags.index("--total-timesteps") + 1] = "3000" if script == "prefppo.py" else "1100"
     result = run_script(script, tmp_path / "run", *flags, "--labels-from", str(uninterrupted[script]))
     assert result.returncode == 0, result.stderr[-3000:]
     imported = sum(int(session["keep"].sum()) for session in saved_labels(uninterrupted[script]))
@@ -274,10 +275,7 @@ def limit_file_size():
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_path):
     out = tmp_path / "run"
-    flags = [*RUNS[script]]
-    if script == "pebble.py":  # every checkpoint is over 2 MiB (the reward model's Adam): fail at the first, sooner
-        flags[flags.index("--checkpoint-every") + 1] = "600"
-    process = start_script(script, out, *flags, preexec_fn=limit_file_size)
+    process = start_script(script, out, *RUNS[script], preexec_fn=limit_file_size)
     stdout, stderr = process.communicate(timeout=300)
     assert process.returncode == 3 and "Traceback" not in stderr
     lines = stderr.strip().splitlines()
