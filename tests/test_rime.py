@@ -121,11 +121,11 @@ def test_the_warm_start_fits_r_hat_to_the_kNN_reward_scaled_into_minus_one_one()
         assert np.corrcoef(member[:, 0], target[:, 0])[0, 1] > 0.9
 
 
-RUN = ["--env-id", "walker-walk", "--seed", "3", "--total-timesteps", "2200", "--seed-steps", "500", "--unsup-steps",
-       "600", "--feedback-every", "500", "--max-feedback", "60", "--feedback-per-session", "20", "--segment-len",
-       "10", "--eval-every", "1100", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
+RUN = ["--env-id", "walker-walk", "--seed", "3", "--total-timesteps", "1300", "--seed-steps", "500", "--unsup-steps",
+       "500", "--feedback-every", "100", "--max-feedback", "60", "--feedback-per-session", "20", "--segment-len",
+       "10", "--eval-every", "650", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
        "--reward-epochs", "20", "--reward-batch-size", "32", "--eval-episodes", "1", "--rime-min-epochs", "2",
-       "--teacher", "mistake", "--teacher-eps-mistake", "0.3", "--checkpoint-every", "1100"]
+       "--teacher", "mistake", "--teacher-eps-mistake", "0.3", "--checkpoint-every", "650"]
 
 
 def test_a_tiny_run_reaches_every_phase(tmp_path):
@@ -165,7 +165,7 @@ def test_a_tiny_run_reaches_every_phase(tmp_path):
     wrong = sum(int((s["y"] != (np.sign(s["rewards1"].sum(1) - s["rewards0"].sum(1)) + 1) / 2).sum()) for s in labels)
     assert wrong > 0  # the mistake teacher at 0.3 made mistakes for the discriminator to find
     assert {"rime/trusted", "rime/flipped", "rime/dropped", "rime/precision", "rime/recall"} <= set(scalars(out))
-    assert [int(row["step"]) for row in eval_rows(out)] == [1100, 2200]
+    assert [int(row["step"]) for row in eval_rows(out)] == [650, 1300]
 
 
 RIME_RANGES = [
