@@ -448,11 +448,11 @@ def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: 
 
 def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
     out = tmp_path / "walker"
-    result = run_pebble(out, "--env-id", "walker-walk", "--total-timesteps", "2300", "--seed-steps", "500",
-                        "--unsup-steps", "600", "--feedback-every", "500", "--max-feedback", "30",
-                        "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1150", *TINY)
+    result = run_pebble(out, "--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "500",
+                        "--unsup-steps", "500", "--feedback-every", "100", "--max-feedback", "30",
+                        "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1100", *TINY)
     rows, labels = check_complete_run(out, result, n_sessions=3, obs_dim=24, segment_len=10)
-    assert [int(r["step"]) for r in rows] == [1150, 2300]
+    assert [int(r["step"]) for r in rows] == [1100, 1300]  # every 1100 and the last step
     assert [int(r["feedback"]) for r in rows] == [10, 30]
     for session in labels:  # the oracle's labels agree with the saved true rewards of the saved segments
         np.testing.assert_array_equal(session["y"], (session["rewards1"].sum(1) > session["rewards0"].sum(1)).astype(float))
