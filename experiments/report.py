@@ -459,6 +459,11 @@ def parity_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
     return pairs
 
 
+def by_return(runs: list[Run]) -> list[Run]:
+    """Meta-World runs measured by their return instead of their success rate."""
+    return [replace(run, metric="episode_return", score=run.rows[-1]["episode_return"]) for run in runs]
+
+
 def on_training_episodes(run: Run) -> bool:
     return run.config.get("episode_returns") == "training"
 
@@ -521,7 +526,7 @@ def parity_rows(pairs: list[tuple[tuple, list[Run], list[Run]]], reps: int, seed
             correlations = [r.rows[-1].get("reward_correlation", float("nan")) for r in group]
             row |= {f"{arm}_runs": len(group), f"{arm}_seeds": " ".join(str(r.config["seed"]) for r in group),
                     f"{arm}_final_mean": float(finals[arm].mean()), f"{arm}_final_std": float(finals[arm].std()),
-                    f"{arm}_finals": " ".join(f"{x:.0f}" for x in finals[arm]),
+                    f"{arm}_finals": " ".join(f"{x:.{digits(ours[0].metric) - 1}f}" for x in finals[arm]),
                     f"{arm}_mean_over_evaluations": float(np.mean([np.mean(list(curve(r).values())) for r in group])),
                     f"{arm}_iqm": iqm[arm]["iqm"],
                     f"{arm}_reward_correlation": float(np.nanmean(correlations)) if np.isfinite(correlations).any()
@@ -574,10 +579,11 @@ def verdict(row: dict, names: tuple[str, str] = ("ours", "reference")) -> str:
     point, low, high = row["difference"]
     base_mean = abs(row["reference_final_mean"])
     of_base = f"{'the ' * (base == 'reference')}{base}'s mean"
-    difference = f"{new} - {base} = {point:+.1f}"
+    d = digits(row["metric"])
+    difference = f"{new} - {base} = {point:+.{d}f}"
     if np.isnan(row["welch_p"]):  # welch_p: nan with fewer than 2 runs a side
         return f"no difference detected: {difference} (a single run on a side: no test; more seeds needed)"
-    interval = f"95% CI [{low:+.1f}, {high:+.1f}], Welch p = {row['welch_p']:.3f}"
+    interval = f"95% CI [{low:+.{d}f}, {high:+.{d}f}], Welch p = {row['welch_p']:.3f}"
     zero_outside = not low <= 0 <= high
     if zero_outside and row["welch_p"] < 0.05:
         side = "lower" if point < 0 else "higher"
@@ -603,7 +609,7 @@ def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path, prefix:
     ax.set_xlabel("environment steps")
     ax.set_ylabel(group[0].metric.replace("_", " "))
     ax.legend(fontsize=8)
-    fig.suptitle(f"{' vs '.join(arms) if prefix != 'parity' else setting[0]} on {setting[1]}, "
+    fig.suptitle(f"{setting[0] if prefix.startswith('parity') else ' vs '.join(arms)} on {setting[1]}, "
                  f"{' / '.join(setting[2:])}\nmean (thick) and each seed (thin)",
                  fontsize=9)
     fig.tight_layout()
@@ -631,6 +637,25 @@ def discriminator(run: Run) -> dict | None:
         return {key: float(data[key]) for key in keys} if all(key in data.files for key in keys) else None
 
 
+def digits(metric: str) -> int:
+    """Decimals of a mean: two for a success rate (in [0, 1]), one for a return; a single run's, one fewer."""
+    return 2 if metric == "success_rate" else 1
+
+
+def arms_table(row: dict, names: tuple[str, str]) -> list[str]:
+    """The two arms of a parity_rows row side by side, then the difference of their means with its CI."""
+    d = digits(row["metric"])
+    lines = table(["", "seeds", "final (mean ± std)", "per seed", "mean over evaluations", "IQM [95% CI]",
+                   "final reward correlation", "wall time per run (min)"],
+                  [[name, row[f"{arm}_seeds"], f"{row[f'{arm}_final_mean']:.{d}f} ± {row[f'{arm}_final_std']:.{d}f}",
+                    row[f"{arm}_finals"], f"{row[f'{arm}_mean_over_evaluations']:.{d}f}",
+                    "{0:.{3}f} [{1:.{3}f}, {2:.{3}f}]".format(*row[f"{arm}_iqm"], d),
+                    fmt(row[f"{arm}_reward_correlation"]), f"{row[f'{arm}_wall_minutes']:.1f}"]
+                   for arm, name in zip(("ours", "reference"), names)])
+    point, low, high = row["difference"]
+    return lines + ["", f"Difference {names[0]} - {names[1]}: {point:+.{d}f} [{low:+.{d}f}, {high:+.{d}f}]", ""]
+
+
 def compare_markdown(rows: list[dict], figures: list[Path], pairs: list, names: tuple[str, str], target: Path,
                      command: str, reps: int) -> str:
     """Two algorithms side by side on every setting both ran (the --compare page)."""
@@ -644,14 +669,7 @@ def compare_markdown(rows: list[dict], figures: list[Path], pairs: list, names: 
     for row, figure, (setting, new_runs, _) in zip(rows, figures, pairs):
         lines += [f"## {row['task']}, teacher {row['teacher']}, budget {row['budget']}, {row['sampler']}, "
                   f"{row['schedule']}", "", f"**Verdict: {verdict(row, names)}.**", ""]
-        lines += table(["", "seeds", "final (mean ± std)", "per seed", "mean over evaluations", "IQM [95% CI]",
-                        "final reward correlation", "wall time per run (min)"],
-                       [[name, row[f"{arm}_seeds"], f"{row[f'{arm}_final_mean']:.1f} ± {row[f'{arm}_final_std']:.1f}",
-                         row[f"{arm}_finals"], f"{row[f'{arm}_mean_over_evaluations']:.1f}",
-                         "{:.1f} [{:.1f}, {:.1f}]".format(*row[f"{arm}_iqm"]), fmt(row[f"{arm}_reward_correlation"]),
-                         f"{row[f'{arm}_wall_minutes']:.1f}"] for arm, name in zip(("ours", "reference"), names)])
-        point, low, high = row["difference"]
-        lines += ["", f"Difference {new} - {base}: {point:+.1f} [{low:+.1f}, {high:+.1f}]", ""]
+        lines += arms_table(row, names)
         records = [(r.config["seed"], d) for r in new_runs if (d := discriminator(r))]
         if records:
             lines += [f"{new}'s discriminator at the last feedback session (labels of D; precision and recall in "
@@ -673,7 +691,8 @@ def parity_markdown(rows: list[dict], figures: list[Path], pooled: list[dict], t
     lines = ["# Parity with the reference code", "",
              f"Made by `{command}` from the finished runs: "
              "each setting run by both pebble.py (ours) and the reference code (rll-research/BPref through "
-             "benchmarks/reference/run.py, same flags). Final = the last evaluation's mean return; IQM with its 95% "
+             "benchmarks/reference/run.py, same flags). Final = the last evaluation's mean return (Meta-World: its "
+             "success rate, the paper's measure, and then its return in a section of its own); IQM with its 95% "
              f"bootstrap CI (rliable, {reps} replications); difference = mean final return of ours - the reference's, "
              "95% percentile bootstrap CI with seeds resampled within each arm (with 3-5 seeds a side such intervals "
              "are narrower than they should be: Welch's p is given beside it). Wall time: minutes per run as "
@@ -681,23 +700,16 @@ def parity_markdown(rows: list[dict], figures: list[Path], pooled: list[dict], t
              "and what was checked where the two part: [benchmarks/reference](../benchmarks/reference/README.md), "
              "[results.md](results.md#parity-with-the-reference-code).", ""]
     for row, figure in zip(rows, figures):
+        measure = f": {row['metric'].replace('_', ' ')}" if is_metaworld(row["task"]) else ""
         lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
-                  f"{row['sampler']}, {row['schedule']}", "", f"**Verdict: {verdict(row)}.**", ""]
+                  f"{row['sampler']}, {row['schedule']}{measure}", "", f"**Verdict: {verdict(row)}.**", ""]
         if row["measured_on"] == "training episodes":
             lines += ["Measured on training episodes: the reference's PrefPPO evaluates no policy, so both arms' "
                       "returns are those of their stochastic training episodes (gSDE noise included), a row per step "
                       "at which a wave of episodes ended (every env ends one at the same step); final = the last "
                       "wave, mean over evaluations = mean over the waves.", ""]
-        lines += table(["", "seeds", "final (mean ± std)", "per seed", "mean over evaluations", "IQM [95% CI]",
-                        "final reward correlation", "wall time per run (min)"],
-                       [[arm, row[f"{arm}_seeds"], f"{row[f'{arm}_final_mean']:.1f} ± {row[f'{arm}_final_std']:.1f}",
-                         row[f"{arm}_finals"], f"{row[f'{arm}_mean_over_evaluations']:.1f}",
-                         "{:.1f} [{:.1f}, {:.1f}]".format(*row[f"{arm}_iqm"]), fmt(row[f"{arm}_reward_correlation"]),
-                         f"{row[f'{arm}_wall_minutes']:.1f}"] for arm in ("ours", "reference")])
-        point, low, high = row["difference"]
-        lines += ["", f"Difference ours - reference: {point:+.1f} [{low:+.1f}, {high:+.1f}]", "",
-                  f"![{figure.stem}]({os.path.relpath(figure, target.parent)})",
-                  ""]
+        lines += arms_table(row, ("ours", "reference"))
+        lines += [f"![{figure.stem}]({os.path.relpath(figure, target.parent)})", ""]
     for row in pooled:
         lines += [f"## {row['algorithm']}: all {row['settings']} settings pooled", "",
                   "A gap too small for any one setting's seeds would show here: the mean over the settings of ours - "
@@ -888,17 +900,22 @@ def report(args: Args) -> Path:
     if args.parity:
         target = Path(args.parity).resolve()
         pairs = parity_pairs(runs)
-        parity = parity_rows(pairs, args.reps, args.seed)
-        if not parity:
+        if not pairs:
             raise ReportError(f"--parity: no setting below {root} has finished runs of both ours and the reference")
-        parity_figures = [parity_figure(setting, {"ours": ours, "reference": reference}, out)
-                          for setting, ours, reference in pairs]
+        # Meta-World: each setting by its success rate, then by its return
+        measured = sorted([(pair, "parity") for pair in pairs] +
+                          [((setting, by_return(ours), by_return(reference)), "parity_return")
+                           for setting, ours, reference in pairs if ours[0].metric == "success_rate"],
+                          key=lambda item: sort_key(item[0][0]))
+        parity = parity_rows([pair for pair, _ in measured], args.reps, args.seed)
+        parity_figures = [parity_figure(setting, {"ours": ours, "reference": reference}, out, prefix)
+                          for (setting, ours, reference), prefix in measured]
         command = shlex.join(["python", "experiments/report.py", *sys.argv[1:]])
         pooled = pooled_differences(pairs, args.reps, args.seed)
         target.write_text(parity_markdown(parity, parity_figures, pooled, target, command, args.reps))
         write_csv(out / "parity.csv", [flat(row) for row in parity])
         for row in parity:
-            print(f"parity: {' / '.join(row[c] for c in SETTING)}: {verdict(row)}")
+            print(f"parity: {' / '.join(row[c] for c in SETTING)}, {row['metric']}: {verdict(row)}")
         for row in pooled:
             print(f"parity: {row['algorithm']}, {row['settings']} settings pooled: {row['relative_difference']:+.1%} "
                   f"[{row['low']:+.1%}, {row['high']:+.1%}], p lower {row['p_lower']:.3f}")

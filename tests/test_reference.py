@@ -375,7 +375,7 @@ def test_parity_script_runs_every_parity_preset_and_stops_before_the_report_on_a
     assert not (tmp_path / "runs" / "report").exists()
 
 
-def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=(10000, 20000)):
+def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=(10000, 20000), success=(0, 0)):
     path = root / name
     path.mkdir(parents=True)
     config = {"env_id": "walker-walk", "seed": seed, "teacher": "oracle", "sampler": "disagreement",
@@ -384,7 +384,7 @@ def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=
     (path / "config.json").write_text(json.dumps(config))
     if implementation == "ours":
         steps = (steps[0], config["total_timesteps"])
-    rows = [{"step": steps[i], "episode_return": value, "wall_time": 60.0 * (i + 1),
+    rows = [{"step": steps[i], "episode_return": value, "success_rate": success[i], "wall_time": 60.0 * (i + 1),
              "reward_correlation": 0.5 if implementation == "ours" else "nan"} for i, value in enumerate(curve)]
     with open(path / "eval.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, reference_run.EVAL_COLUMNS, restval="0")
@@ -417,6 +417,35 @@ def test_report_sets_both_implementations_side_by_side_with_a_verdict(tmp_path):
     figure = root / "report" / "parity_pebble_walker-walk_oracle_1000-100_disagreement_uniform.png"
     assert figure.read_bytes()[:4] == b"\x89PNG"
     assert "(../parity/report/parity_pebble_walker-walk" in text
+
+
+def test_metaworld_parity_decides_by_success_rate_and_sets_the_returns_side_by_side_too(tmp_path):
+    root = tmp_path / "parity"
+    button = {"env_id": "button-press"}
+    for seed, (final, rate) in enumerate([(4000, 1.0), (4100, 0.9), (4200, 1.0)], 1):
+        write_run(root, f"ours_{seed}", seed, [50, final], extra=button, success=(0, rate))
+    for seed, (final, rate) in enumerate([(900, 0.2), (1000, 0.0), (1100, 0.3)], 1):
+        write_run(root, f"ref_{seed}", seed, [60, final], implementation="reference", extra=button, success=(0, rate))
+    target = tmp_path / "parity.md"
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = target.read_text()
+    setting = "## pebble on button-press, teacher oracle, budget 1000/100, disagreement, uniform"
+    success, returns = text.index(f"{setting}: success rate\n"), text.index(f"{setting}: episode return\n")
+    assert success < returns  # the paper's measure first
+    by_success, by_return = text[success:returns], text[returns:]
+    assert "**Verdict: higher: ours - reference = +0.80 (" in by_success
+    assert "| ours | 1 2 3 | 0.97 ± 0.05 | 1.0 0.9 1.0 | 0.48 |" in by_success  # two decimals, per seed one
+    assert "| reference | 1 2 3 | 0.17 ± 0.12 | 0.2 0.0 0.3 | 0.08 |" in by_success
+    assert "**Verdict: higher: ours - reference = +3100.0 (" in by_return
+    assert "| ours | 1 2 3 | 4100.0 ± 81.6 | 4000 4100 4200 | 2075.0 |" in by_return
+    with open(root / "report" / "parity.csv") as f:
+        assert [row["metric"] for row in csv.DictReader(f)] == ["success_rate", "episode_return"]
+    for prefix in ("parity", "parity_return"):
+        figure = root / "report" / f"{prefix}_pebble_button-press_oracle_1000-100_disagreement_uniform.png"
+        assert figure.read_bytes()[:4] == b"\x89PNG"
 
 
 def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
