@@ -481,22 +481,29 @@ def test_a_verdict_is_higher_lower_or_no_difference_detected_and_level_only_with
     ours, reference = np.array([500.0, 700.0, 600.0]), np.array([650.0, 550.0, 600.0])
     point, low, high = report.difference_ci(ours, reference, 4000, 0)
     assert point == 0 and low < 0 < high
-    row = {"difference": (point, low, high), "reference_final_mean": 600.0, "welch_p": report.welch_p(ours, reference)}
+    row = {"difference": (point, low, high), "reference_final_mean": 600.0, "welch_p": report.welch_p(ours, reference),
+           "metric": "episode_return"}
     assert report.verdict(row).startswith("no difference detected: ours - reference = +0.0, 95% CI [")
     # a CI inside +-15% of the reference's mean (+-90 of 600) is level as well; one edge outside it is not
     narrow = row | {"difference": (-10.0, -90.0, +60.0)}
     assert report.verdict(narrow).startswith("no difference detected, level (the CI within ±15% of the reference's")
     assert "level" not in report.verdict(row | {"difference": (-10.0, -91.0, +60.0)})
     # -270 with a CI of [-563, +28]: wide, no difference detected, not level
-    wide = {"difference": (-270.3, -563.4, 28.3), "reference_final_mean": 613.2, "welch_p": 0.236}
+    wide = {"difference": (-270.3, -563.4, 28.3), "reference_final_mean": 613.2, "welch_p": 0.236,
+            "metric": "episode_return"}
     assert report.verdict(wide) == ("no difference detected: ours - reference = -270.3, 95% CI [-563.4, +28.3], "
                                     "Welch p = 0.236")
-    higher = {"difference": (88.5, 45.7, 146.0), "reference_final_mean": 501.3, "welch_p": 0.021}
+    higher = {"difference": (88.5, 45.7, 146.0), "reference_final_mean": 501.3, "welch_p": 0.021,
+              "metric": "episode_return"}
     assert report.verdict(higher) == ("higher: ours - reference = +88.5 (18% of the reference's mean), 95% CI "
                                       "[+45.7, +146.0], Welch p = 0.021")
     assert report.verdict(higher, ("rime", "pebble")).startswith("higher: rime - pebble = +88.5 (18% of pebble's mean)")
+    rate = {"difference": (0.267, 0.0, 0.8), "reference_final_mean": 0.733, "welch_p": 0.42, "metric": "success_rate"}
+    assert report.verdict(rate) == ("no difference detected: ours - reference = +0.27, 95% CI [+0.00, +0.80], Welch p "
+                                    "= 0.420")  # a success rate with two decimals
     # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): no verdict either way
-    row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134}
+    row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134,
+           "metric": "episode_return"}
     assert report.verdict(row).startswith("no difference detected: ours - reference = -176.7")
     assert report.verdict(row).endswith("(the bootstrap CI excludes 0, Welch's test does not: more seeds needed)")
     one_each = row | {"difference": (-50.0, -50.0, -50.0), "welch_p": report.welch_p(np.array([550.0]), np.array([600.0]))}
