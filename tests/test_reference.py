@@ -393,6 +393,14 @@ def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=
     (path / "final_model.pt").write_bytes(b"")
 
 
+def parity_report(root, target) -> None:
+    """report.py ROOT --parity TARGET, as a user runs it; it must succeed."""
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
 def test_report_sets_both_implementations_side_by_side_with_a_verdict(tmp_path):
     root = tmp_path / "parity"
     for seed, final in enumerate([100, 110, 120], 1):
@@ -401,10 +409,7 @@ def test_report_sets_both_implementations_side_by_side_with_a_verdict(tmp_path):
         write_run(root, f"ref_{seed}", seed, [60, final], implementation="reference")
     target = tmp_path / "docs" / "parity.md"
     target.parent.mkdir()
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
-                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
-                            env=ENV, cwd=ROOT)
-    assert result.returncode == 0, result.stderr[-2000:]
+    parity_report(root, target)
     text = target.read_text()
     assert "**Verdict: lower: ours - reference = -800.0 (88% of the reference's mean), 95% CI [" in text
     assert "| ours | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 80.0 |" in text
@@ -427,10 +432,7 @@ def test_metaworld_parity_decides_by_success_rate_and_sets_the_returns_side_by_s
     for seed, (final, rate) in enumerate([(900, 0.2), (1000, 0.0), (1100, 0.3)], 1):
         write_run(root, f"ref_{seed}", seed, [60, final], implementation="reference", extra=button, success=(0, rate))
     target = tmp_path / "parity.md"
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
-                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
-                            env=ENV, cwd=ROOT)
-    assert result.returncode == 0, result.stderr[-2000:]
+    parity_report(root, target)
     text = target.read_text()
     setting = "## pebble on button-press, teacher oracle, budget 1000/100, disagreement, uniform"
     success, returns = text.index(f"{setting}: success rate\n"), text.index(f"{setting}: episode return\n")
@@ -640,10 +642,7 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
                   extra=prefppo | {"episode_returns": "training"}, steps=(2000, 4000))
     assert grid.run_state(root / "ref_1")[0] == "finished" and grid.run_state(root / "ours_1")[0] == "finished"
     target = tmp_path / "parity.md"
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
-                             "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
-                            env=ENV, cwd=ROOT)
-    assert result.returncode == 0, result.stderr[-2000:]
+    parity_report(root, target)
     text = target.read_text()
     assert "## prefppo on walker-walk" in text and "Measured on training episodes" in text
     assert "| ours | 1 2 | 41.0 ± 10.0 | 31 51 |" in text  # the waves' means at 4000: 31 and 51
