@@ -118,6 +118,9 @@ CPU_PILOT = ("--total-timesteps 250000 --hidden-dim 256 --num-layers 2 --batch-s
 # sessions of 50 every 4950 steps from step 10,001, its learning rate, reward epochs and segment length
 CPU_METAWORLD = ("--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --batch-size 256 --eval-every 10000 "
                  "--eval-episodes 10 --checkpoint-every 10000")
+# sweep-into: the pilot's SAC succeeds at every evaluation from 110K steps on (docs/results.md), so 150K steps;
+# the same sessions of 50 every 4950 steps from step 10,001, 28 of them (1400 labels) as button-press's 18 in 100K
+CPU_SWEEP_INTO = CPU_METAWORLD.replace("--total-timesteps 100000", "--total-timesteps 150000")
 PRESETS = {
     "custom": ("a grid of your own (defaults: PEBBLE, walker-walk, six teachers, the task's budget, 3 seeds)", Grid()),
     "mini-bpref": ("PEBBLE on walker-walk at CPU size: six teachers + ground truth, 5 seeds, about 1.5 h on 2 cores "
@@ -137,6 +140,11 @@ PRESETS = {
         "100K steps, 256 x 2, batch 256, 3 seeds",
         Grid(env_ids=("button-press",), teachers=("oracle",), budgets=("900/50",), root="runs/button-press",
              flags=CPU_METAWORLD)),
+    "sweep-into-cpu": (
+        "PEBBLE (oracle, 1400 labels in sessions of 50 every 4950 steps) and SAC on the true reward, sweep-into, "
+        "150K steps, 256 x 2, batch 256, 3 seeds",
+        Grid(env_ids=("sweep-into",), teachers=("oracle",), budgets=("1400/50",), root="runs/sweep-into",
+             flags=CPU_SWEEP_INTO)),
     # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
     "parity-pebble": (
         "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",

@@ -17,6 +17,7 @@ import grid
 import pebble
 import prefppo
 import report
+from samplers import planned_labels, schedule_sizes, session_steps
 from tests.helpers import ENV, ROOT, eval_curve, wait_for
 
 # Hopper-v5: positive returns (a ground-truth baseline that can normalise) and short random episodes. pebble: sessions
@@ -452,3 +453,19 @@ def test_the_card_commands_projection_adds_its_phases_as_measured_by_hand():
     # pre-training 100 s; 9 blocks of SAC at the median 60 s; sessions 1-3 cost 20, 40 and 60 s over SAC
     assert total == pytest.approx(100 + 9 * 60 + 20 * (1 + 2 + 3))
     assert np.isnan(card_speed.projection(rows[:2], config)[1])  # no block of SAC alone yet: no projection
+
+
+@pytest.mark.parametrize("preset", ["button-press-cpu", "sweep-into-cpu"])
+def test_metaworld_cpu_presets_keep_the_papers_sessions_and_spend_their_budget(preset, monkeypatch):
+    runs = grid.expand(grid.PRESETS[preset][1])
+    assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
+    (run,) = [r for r in runs if "--teacher" in r.flags and r.name.endswith("__s1")]
+    monkeypatch.setattr(sys, "argv", ["pebble.py", *run.flags])
+    args = pebble.parse_args()  # the preset's flags over the Meta-World task's defaults
+    assert (args.feedback_per_session, args.feedback_every, args.segment_len) == (50, 4950, 50)
+    first = args.seed_steps + args.unsup_steps + 1
+    steps = session_steps(first, args.feedback_every, args.total_timesteps)
+    sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps - 1,
+                           args.total_timesteps)
+    spent = planned_labels(sizes, first, args.feedback_every, args.total_timesteps)
+    assert spent == args.max_feedback == {100_000: 900, 150_000: 1400}[args.total_timesteps]
