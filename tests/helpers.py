@@ -1,12 +1,21 @@
 """Running pebble.py / prefppo.py as a user would, and reading what a run wrote."""
 
+import atexit
+import contextlib
 import csv
 import json
+import multiprocessing
+import multiprocessing.forkserver
 import os
 import re
+import runpy
+import signal
 import subprocess
 import sys
+import tempfile
+import traceback
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -15,9 +24,83 @@ ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
 
 
 def run_script(script: str, out: Path, *flags: str, timeout: int = 600, env: dict | None = None) -> subprocess.CompletedProcess:
-    """The script as a user runs it; `env` adds or overrides environment variables."""
+    """The script as a user runs it (forked, ForkedRun); `env` adds or overrides environment variables (then a new
+    interpreter: they are read when it starts)."""
     cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV | (env or {}), cwd=ROOT)
+    if env:
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV | env, cwd=ROOT)
+    process = ForkedRun(cmd)
+    try:
+        stdout, stderr = process.communicate(timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise
+    return subprocess.CompletedProcess(cmd, process.returncode, stdout, stderr)
+
+
+# Each script run in a new interpreter pays about 4 s of imports (torch, then torch._dynamo when Adam is built) before
+# its first step, most of the suite's time. A fork server per pytest worker, started once with ENV, has them imported;
+# each run is a child forked from it: its own process, running the script as `python SCRIPT FLAGS` does
+PRELOAD = ["torch", "torch._dynamo", "torch.utils.tensorboard", "gymnasium", "tyro", "dm_control.suite", "metaworld"]
+FORK_SERVER = multiprocessing.get_context("forkserver")
+FORK_SERVER.set_forkserver_preload(PRELOAD)
+
+
+def run_as_main(cmd: list[str], stdout: str, stderr: str):
+    """In the forked child: `python SCRIPT FLAGS` (cmd), its output to the two files, its exit code as the
+    interpreter's (SystemExit's code; 1 and the traceback for an exception)."""
+    for fd, path in ((1, stdout), (2, stderr)):
+        os.dup2(os.open(path, os.O_WRONLY), fd)
+    os.chdir(ROOT)
+    sys.argv = cmd[1:]
+    sys.path.insert(0, str(Path(cmd[1]).parent))
+    try:
+        runpy.run_path(cmd[1], run_name="__main__")
+    except Exception:
+        traceback.print_exc()
+        sys.exit(1)
+    finally:
+        atexit._run_exitfuncs()
+
+
+class ForkedRun:
+    """`subprocess.Popen(cmd, stdout=PIPE, stderr=PIPE, text=True, env=ENV, cwd=ROOT)` as the tests use it (pid, poll,
+    send_signal, kill, wait, communicate, returncode), for a script forked from the fork server."""
+
+    def __init__(self, cmd: list[str]):
+        self.args = cmd
+        self.files = [tempfile.mkstemp(prefix="run_")[1] for _ in ("stdout", "stderr")]
+        with mock.patch.dict(os.environ, ENV):  # the server starts (once) with the scripts' environment
+            multiprocessing.forkserver.ensure_running()
+        self.process = FORK_SERVER.Process(target=run_as_main, args=(cmd, *self.files))
+        self.process.start()
+        self.pid = self.process.pid
+        self.returncode = None
+
+    def poll(self) -> int | None:
+        self.returncode = self.process.exitcode
+        return self.returncode
+
+    def send_signal(self, signum: int):
+        if self.poll() is None:  # as Popen: nothing to signal once it has ended (the server reaps it)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signum)
+
+    def kill(self):
+        self.send_signal(signal.SIGKILL)
+
+    def wait(self, timeout: float | None = None) -> int:
+        self.process.join(timeout)
+        if self.poll() is None:
+            raise subprocess.TimeoutExpired(self.args, timeout)
+        return self.returncode
+
+    def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+        self.wait(timeout)
+        output = [Path(path).read_text() for path in self.files]
+        for path in self.files:
+            os.remove(path)
+        return output[0], output[1]
 
 
 # Runs each command line of argv (a JSON list) through the script's __main__, as `python SCRIPT ARGS` does,
@@ -131,10 +214,14 @@ def assert_refused_by_tyro(result, message: str, out: Path):
     assert not out.exists()
 
 
-def start_script(script: str, out: Path, *flags: str, **popen_kwargs) -> subprocess.Popen:
-    """A run in the background, to be killed or signalled."""
+def start_script(script: str, out: Path, *flags: str, **popen_kwargs) -> "ForkedRun | subprocess.Popen":
+    """A run in the background, to be killed or signalled: forked (ForkedRun), or with popen_kwargs a new
+    interpreter."""
     cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT, **popen_kwargs)
+    if popen_kwargs:
+        return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT,
+                                **popen_kwargs)
+    return ForkedRun(cmd)
 
 
 def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):
