@@ -375,18 +375,22 @@ def biased_loglik(theta, bias: float, diff: np.ndarray, sign: np.ndarray):
     return float(np.log(p).sum()), grad
 
 
-def rational_biased(bias: float, agree: np.ndarray, sign: np.ndarray) -> tuple[float, float, float]:
+def side_counts(agree: np.ndarray, sign: np.ndarray) -> dict:
+    """side (+1: the second segment preferred, -1: the first) -> the counts of its labels with,
+    against and tied with the returns, (G,) each; agree (G, N)."""
+    return {side: [((agree > 0) & (sign == side)).sum(1), ((agree < 0) & (sign == side)).sum(1),
+                   ((agree == 0) & (sign == side)).sum(1)] for side in (1.0, -1.0)}
+
+
+def rational_biased(bias: float, counts: dict) -> tuple[float, float, float]:
     """beta = inf: the best (log-likelihood, gamma, eps) over DENSE_GAMMAS and a grid of eps, from
-    the counts of labels with, against and tied with the returns on each side; agree (G, N)."""
+    the counts of labels with, against and tied with the returns on each side (side_counts)."""
     eps = np.linspace(0.0, 0.5, 201)
     l0, l1, k = (np.array(v) for v in zip(*(lapses(float(e), bias) for e in eps)))
     with np.errstate(divide="ignore", invalid="ignore"):
         loglik = 0.0
         for side, lapse in ((1.0, l1), (-1.0, l0)):
-            on_side = sign == side
-            counts = [((agree > 0) & on_side).sum(1), ((agree < 0) & on_side).sum(1),
-                      ((agree == 0) & on_side).sum(1)]  # (G,) each
-            for count, share in zip(counts, (1.0, 0.0, 0.5)):
+            for count, share in zip(counts[side], (1.0, 0.0, 0.5)):
                 term = np.log(lapse + k * share)[:, None] * count[None]  # (E, G)
                 loglik = loglik + np.where(count[None] > 0, term, 0.0)
     e, g = np.unravel_index(np.argmax(loglik), loglik.shape)
@@ -398,7 +402,7 @@ def fit_bias(diff: np.ndarray, sign: np.ndarray, choice: dict, level: float) -> 
     from 0, each fit started from its neighbour's), beta, gamma and eps are fitted again (a local
     optimiser, and the rational teacher exactly); each end of the interval is then bisected. The
     bias-free fit is the profile at b = 0."""
-    agree = sign * advantages(diff, DENSE_GAMMAS)
+    counts = side_counts(sign * advantages(diff, DENSE_GAMMAS), sign)  # the same at every b
     bounds = [(-30.0, 30.0), (GAMMAS[0], 1.0), (0.0, 0.5)]
     base = [math.log(min(choice["beta"], 1e12)), choice["gamma"], choice["eps_mistake"]]
 
@@ -407,7 +411,7 @@ def fit_bias(diff: np.ndarray, sign: np.ndarray, choice: dict, level: float) -> 
                           [min(max(v, lo), hi) for v, (lo, hi) in zip(start, bounds)], jac=True,
                           method="TNC", bounds=bounds)
         best = (-float(result.fun), [float(v) for v in result.x])
-        loglik, gamma, eps = rational_biased(bias, agree, sign)
+        loglik, gamma, eps = rational_biased(bias, counts)
         return best if best[0] > loglik else (loglik, [math.inf, gamma, eps])
 
     at = {0.0: profile(0.0, base)}
