@@ -63,6 +63,15 @@ def assert_same_run(resumed, reference):
         np.testing.assert_allclose(a["obs0"], b["obs0"], rtol=1e-6)
 
 
+def test_a_forked_run_equals_the_same_command_in_a_new_interpreter(tmp_path, uninterrupted):
+    """The suite's runs are forked from a server that has torch and the environments imported (tests/helpers.py
+    ForkedRun): what a run writes must not depend on it."""
+    out = tmp_path / "run"
+    result = run_script("pebble.py", out, *RUNS["pebble.py"], env={"OMP_NUM_THREADS": "1"})  # env: a new interpreter
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert_same_run(out, uninterrupted["pebble.py"])
+
+
 @pytest.mark.parametrize("script", WITH_RIME)
 def test_sigterm_then_sigkill_and_resumes_equal_the_uninterrupted_run(script, tmp_path, uninterrupted):
     out = tmp_path / "run"
