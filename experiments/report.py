@@ -5,7 +5,9 @@ bootstrap confidence intervals (rliable), a Markdown file with the tables and PN
 
 A run is any folder below the root with a config.json (made by pebble.py, rime.py or prefppo.py, by the grid runner or by
 hand). Normalised return of a run = its final evaluation return (Meta-World: success rate, as in the paper) / the
-mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same task.
+mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same task. A run is
+finished when its eval.csv reaches its total steps; config.json and eval.csv are all the tables need (the reward
+alignment needs final_model.pt too), so `python experiments/report.py docs/tasks/data/sweep-into` works.
 """
 
 import csv
@@ -127,6 +129,8 @@ def find_runs(root: Path, out: Path) -> list[Run]:
         state, detail = run_state(path)
         metric = "success_rate" if is_metaworld(config["env_id"]) else "episode_return"
         rows = read_eval(path)
+        if state != "finished" and rows and rows[-1]["step"] >= config.get("total_timesteps", float("inf")):
+            state = "finished"  # evaluated to its last step, final_model.pt not kept (the data committed in docs/)
         run = Run(path, config, rows, state, detail, setting, metric)
         if state == "finished":
             run.score = rows[-1][metric]
@@ -813,7 +817,8 @@ def report(args: Args) -> Path:
     if args.alignment_runs:
         candidates = defaultdict(list)
         for run in finished:
-            if not run.is_ground_truth and run.config.get("implementation", "ours") == "ours":
+            ours = run.config.get("implementation", "ours") == "ours"
+            if not run.is_ground_truth and ours and (run.path / "final_model.pt").exists():
                 candidates[run.setting[:2]].append(run)
         for key, group in sorted(candidates.items()):
             for run in sorted(group, key=lambda r: (r.setting[2] != "oracle", str(r.path)))[: args.alignment_runs]:

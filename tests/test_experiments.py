@@ -422,6 +422,24 @@ def test_rime_presets_run_pebble_and_rime_with_the_same_flags_and_seeds():
     assert eps[eps.index("--teacher-eps-mistake") + 1] == "0.3"
 
 
+def test_committed_data_without_final_model_is_reported_and_not_replayed(tmp_path):
+    """docs/ keeps config.json and eval.csv only: a run evaluated to its last step counts as finished (scored and
+    normalised), one that stopped before is not, and no reward alignment is tried without final_model.pt."""
+    for seed, value in enumerate([0.4, 0.8], 1):
+        write_run(tmp_path, f"truth_{seed}", "sweep-into", seed, value, truth=True, metric="success_rate")
+    write_run(tmp_path, "oracle_1", "sweep-into", 1, 0.3, metric="success_rate")
+    write_run(tmp_path, "oracle_2", "sweep-into", 2, 0.9, metric="success_rate", finished=False)
+    for model in tmp_path.rglob("final_model.pt"):
+        model.unlink()
+    result = run_report(tmp_path, "--reps", "200", "--alignment-runs", "1")
+    assert result.returncode == 0, result.stderr[-3000:]
+    runs = {row["run"]: row for row in read_csv(tmp_path / "report" / "runs.csv")}
+    assert runs["oracle_1"]["state"] == "finished" and float(runs["oracle_1"]["normalized"]) == pytest.approx(0.5)
+    assert runs["oracle_2"]["state"] == "partial" and runs["oracle_2"]["score"] == ""
+    markdown = (tmp_path / "report" / "report.md").read_text()
+    assert "alignment" not in markdown and "`oracle_2`: unfinished" in markdown
+
+
 def test_report_on_a_folder_without_runs_is_one_error_line(tmp_path):
     result = run_report(tmp_path)
     message = f"error: no runs (folders with a config.json) below {tmp_path.resolve()}"
