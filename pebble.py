@@ -11,6 +11,7 @@ import time
 import warnings
 from collections import deque, namedtuple
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from functools import partial
 from typing import Literal
 
 import gymnasium as gym
@@ -40,7 +41,7 @@ class Args:
     capture_video: bool = False
     """if toggled, record each evaluation's first episode to videos/"""
     compile: bool = False
-    """if toggled, compile the SAC update and r_hat (CUDA graphs on a GPU)"""
+    """if toggled, compile the SAC update and r_hat; on a GPU, replay whole steps as CUDA graphs"""
     output_dir: str = ""
     """where the run's files go ('': runs/<run name>)"""
     checkpoint_every: int = 50000
@@ -367,8 +368,8 @@ def optimize(optimizer, loss):
     optimizer.step()
 
 
-def adam(params, lr):
-    return torch.optim.Adam(params, lr=lr, fused=True)
+def adam(params, lr, capturable=False):
+    return torch.optim.Adam(params, lr=lr, fused=True, capturable=capturable)
 
 
 Batch = namedtuple("Batch", "obs actions rewards next_obs terminated")
@@ -579,7 +580,9 @@ def reset_critic(critic, critic_target, critic_optimizer):
     """PEBBLE after the first reward update: fresh critics and Adam moments."""
     critic.load_state_dict(TwinCritic(*critic.sizes).state_dict())
     critic_target.load_state_dict(critic.state_dict())
-    critic_optimizer.state.clear()
+    for state in critic_optimizer.state.values():  # in place: a CUDA graph holds these tensors
+        for value in state.values():
+            value.zero_()
 
 
 def evaluate(policy, reward_model, env, seeds, device):
@@ -784,6 +787,41 @@ def save_checkpoint(path, parts):
     save_file(path, data.getvalue())
 
 
+def tensors_of(inputs):
+    """The tensors of a call's arguments: tensors and Batches."""
+    return [t for x in inputs for t in ([x] if torch.is_tensor(x) else x)]
+
+
+class CudaGraph:
+    """--compile on a GPU (LeanRL's recipe): all of fn's kernels (backward and Adam's step too)
+    recorded once, then replayed; a call copies its tensors into the graph's inputs."""
+
+    def __init__(self, fn, eager_calls=3):
+        self.fn = fn
+        self.eager_calls = eager_calls  # first: Adam's moments and cuBLAS's workspace are made
+        self.graph = None
+
+    def __call__(self, *inputs):
+        if self.eager_calls:
+            self.eager_calls -= 1
+            stream = torch.cuda.Stream()  # PyTorch's rule: warm up on a side stream
+            stream.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(stream):
+                outputs = self.fn(*inputs)
+            torch.cuda.current_stream().wait_stream(stream)
+            return outputs
+        if self.graph is None:
+            self.inputs = [x.clone() if torch.is_tensor(x) else Batch(*(t.clone() for t in x))
+                           for x in inputs]
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph):
+                self.outputs = self.fn(*self.inputs)
+        for fixed, tensor in zip(tensors_of(self.inputs), tensors_of(inputs)):
+            fixed.copy_(tensor)
+        self.graph.replay()
+        return self.outputs
+
+
 @dataclass
 class Progress:
     """What the main loop carries besides networks, optimizers and buffers."""
@@ -922,19 +960,24 @@ if __name__ == "__main__":
     critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic_target.load_state_dict(critic.state_dict())
-    actor_optimizer = adam(actor.parameters(), args.learning_rate)
-    critic_optimizer = adam(critic.parameters(), args.learning_rate)
+    graphs = args.compile and device.type == "cuda"
+    actor_optimizer = adam(actor.parameters(), args.learning_rate, graphs)
+    critic_optimizer = adam(critic.parameters(), args.learning_rate, graphs)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
-    alpha_optimizer = adam([log_alpha], args.alpha_lr)
+    alpha_optimizer = adam([log_alpha], args.alpha_lr, graphs)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
     buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim).to(device)
     intrinsic_stats = RunningMeanStd()
-    sac_step = sac_update
-    r_hat = reward_model
-    if args.compile:
-        sac_step = torch.compile(sac_update, mode="reduce-overhead")
-        r_hat = torch.compile(reward_model, mode="reduce-overhead")
+    sac_step = partial(torch.compile(sac_update) if args.compile else sac_update, actor=actor,
+                       critic=critic, critic_target=critic_target, log_alpha=log_alpha,
+                       actor_opt=actor_optimizer, critic_opt=critic_optimizer,
+                       alpha_opt=alpha_optimizer, gamma=args.gamma)
+    target_update = partial(soft_update, critic, critic_target, args.tau)
+    r_hat = torch.compile(reward_model) if args.compile else reward_model
+    act = actor.sample
+    if graphs:
+        sac_step, target_update, r_hat, act = map(CudaGraph, (sac_step, target_update, r_hat, act))
     # Feedback sessions
     first_session = args.seed_steps + args.unsup_steps + 1
     steps = session_steps(first_session, args.feedback_every, args.total_timesteps)
@@ -954,6 +997,8 @@ if __name__ == "__main__":
              "action_rng": action_rng, "episodes": episodes}
     if args.resume:
         restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
+        for optimizer in (actor_optimizer, critic_optimizer, alpha_optimizer):
+            optimizer.param_groups[0]["capturable"] = graphs  # --compile may change on resume
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {args.output_dir!r} has already finished")
         say(f"resuming from the checkpoint at step {progress.global_step}")
@@ -990,17 +1035,16 @@ if __name__ == "__main__":
                 reset_critic(critic, critic_target, critic_optimizer)
                 for update in range(1, args.critic_reset_updates + 1):
                     batch = buffer.sample(args.batch_size)
-                    sac_step(batch, batch.rewards, actor, critic, critic_target, log_alpha,
-                             actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
+                    sac_step(batch, batch.rewards)
                     if update % args.target_update_every == 0:
-                        soft_update(critic, critic_target, args.tau)
+                        target_update()
 
             # Act, step, store
             if global_step <= args.seed_steps:
                 action = action_rng.uniform(-1, 1, action_dim).astype(np.float32)
             else:
                 with torch.no_grad():
-                    action = actor.sample(torch.as_tensor(obs, device=device)[None])[0]
+                    action = act(torch.as_tensor(obs, device=device)[None])[0]
                 action = action[0].cpu().numpy()
             next_obs, true_reward, terminated, truncated, _ = env.step(action)
             if not (math.isfinite(true_reward) and np.isfinite(next_obs).all()):
@@ -1032,10 +1076,9 @@ if __name__ == "__main__":
                     rewards = intrinsic_reward(batch, buffer, args.knn_k)
                     intrinsic_stats.update(rewards)
                     rewards = rewards / max(math.sqrt(intrinsic_stats.var), 1e-8)
-                losses = sac_step(batch, rewards, actor, critic, critic_target, log_alpha,
-                                  actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
+                losses = sac_step(batch, rewards)
                 if (global_step - args.seed_steps) % args.target_update_every == 0:
-                    soft_update(critic, critic_target, args.tau)
+                    target_update()
                 if global_step % 100 == 0:
                     for name, value in losses.items():
                         writer.add_scalar(f"losses/{name}", value, global_step)

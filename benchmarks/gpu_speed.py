@@ -1,7 +1,7 @@
 """Steps per second on one GPU, side by side in one run (issue 48): CleanRL's SAC (eager, a fetched copy),
 pebble.py eager and pebble.py --compile, at 256 x 2 / batch 256 and 1024 x 2 / batch 1024, in SAC's learning phase
 on Hopper-v4's true reward (5000 random steps first); then a whole PEBBLE run (walker-walk, oracle, 1024 x 2:
-pre-training, sessions, relabelling) eager and compiled, by phase.
+pre-training, sessions, relabelling) eager and compiled, by phase (rime.py's too with --whole-run-scripts pebble rime).
 
     python benchmarks/gpu_speed.py --cleanrl reference/cleanrl --steps 4000
     # reference/cleanrl: a copy of vwxyzjn/cleanrl's cleanrl/sac_continuous_action.py and cleanrl_utils/ (git-ignored)
@@ -78,6 +78,8 @@ def main():
     parser.add_argument("--steps", type=int, default=4000, help="learning steps per SAC run")
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 1024], help="widths (= batch sizes)")
     parser.add_argument("--no-whole-run", action="store_true", help="skip the whole PEBBLE runs")
+    parser.add_argument("--whole-run-scripts", nargs="+", default=["pebble"], choices=["pebble", "rime"],
+                        help="the scripts of the whole runs")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="gpu_speed_"))
     print("| run | width x 2, batch | steps/s | first 1000 steps (s) | / pebble.py eager |\n|---|---|---:|---:|---:|")
@@ -92,17 +94,18 @@ def main():
             print(f"| {name} | {hidden}, {hidden} | {rate:.1f} | {first:.1f} | {rate / eager[0]:.2f} |", flush=True)
     if args.no_whole_run:
         return
-    runs = {}
-    for name, extra in (("eager", []), ("--compile", ["--compile"])):
-        out = work / f"whole_{name.strip('-')}"
-        subprocess.run([sys.executable, str(ROOT / "pebble.py"), *WHOLE_RUN, "--output-dir", str(out), *extra],
-                       check=True, stdout=subprocess.DEVNULL)
-        runs[name] = phases(walls(out))
-    print("\nWhole PEBBLE run, walker-walk, 1024 x 2, batch 1024 (steps/s):\n")
-    print("| phase | eager | --compile | ratio |\n|---|---:|---:|---:|")
-    for phase in runs["eager"]:
-        eager, compiled = runs["eager"][phase], runs["--compile"][phase]
-        print(f"| {phase} | {eager:.1f} | {compiled:.1f} | {compiled / eager:.2f} |")
+    for script in args.whole_run_scripts:
+        runs = {}
+        for name, extra in (("eager", []), ("--compile", ["--compile"])):
+            out = work / f"whole_{script}_{name.strip('-')}"
+            subprocess.run([sys.executable, str(ROOT / f"{script}.py"), *WHOLE_RUN, "--output-dir", str(out),
+                            *extra], check=True, stdout=subprocess.DEVNULL)
+            runs[name] = phases(walls(out))
+        print(f"\nWhole {script}.py run, walker-walk, 1024 x 2, batch 1024 (steps/s):\n")
+        print("| phase | eager | --compile | ratio |\n|---|---:|---:|---:|")
+        for phase in runs["eager"]:
+            eager, compiled = runs["eager"][phase], runs["--compile"][phase]
+            print(f"| {phase} | {eager:.1f} | {compiled:.1f} | {compiled / eager:.2f} |")
 
 
 if __name__ == "__main__":

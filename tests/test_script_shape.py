@@ -12,7 +12,7 @@ import pytest
 from benchmarks.script_size import ROOT, content_tokens, main_loop_lines, prose_characters
 
 SCRIPTS = ("pebble.py", "prefppo.py", "rime.py")
-SIZE_LIMIT = {"pebble.py": 8600, "prefppo.py": 8900, "rime.py": 9700}  # tokens today, rounded up: a regression guard
+SIZE_LIMIT = {"pebble.py": 8900, "prefppo.py": 8900, "rime.py": 10000}  # tokens today, rounded up: a regression guard
 # Plumbing that is the same code in both scripts (CleanRL's way: each script stands alone)
 # and reward learning, which is the same algorithm in both; restore differs by SAC's temperature tensor
 SHARED = ("DMCEnv", "MetaWorldSeeding", "env_kind", "make_env", "numpy_seeds", "episode_seed", "knn_distance",
@@ -35,7 +35,7 @@ def definitions(script: str) -> dict[str, str]:
 def test_lines_prose_and_main_loop_stay_within_the_goals(script):
     text = source(script)
     assert max(map(len, text.splitlines())) <= 100
-    assert prose_characters(text) <= 6600  # 6,000 before the console's start and progress lines
+    assert prose_characters(text) <= 7000  # 6,000 before the console, 6,600 before --compile's CUDA graphs
     assert 40 <= main_loop_lines(text) <= 100  # found, and short
     assert len(content_tokens(text)) <= SIZE_LIMIT[script]
     names = [t.string for t in tokenize.generate_tokens(io.StringIO(text).readline) if t.type == tokenize.NAME]
