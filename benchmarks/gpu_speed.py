@@ -1,6 +1,6 @@
 """Steps per second on one GPU, side by side in one run (issue 48): CleanRL's SAC (eager, a fetched copy),
 pebble.py eager and pebble.py --compile, at 256 x 2 / batch 256 and 1024 x 2 / batch 1024, in SAC's learning phase
-on Hopper-v4's true reward (5000 random steps first); then a whole PEBBLE run (walker-walk, oracle, 1024 x 2:
+on Hopper-v4's true reward (5000 random steps first); then a whole PEBBLE run (Hopper-v5, oracle, 1024 x 2:
 pre-training, sessions, relabelling) eager and compiled, by phase (rime.py's too with --whole-run-scripts pebble rime).
 
     python benchmarks/gpu_speed.py --cleanrl reference/cleanrl --steps 4000
@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RANDOM_STEPS = 5000
-WHOLE_RUN = ["--env-id", "walker-walk", "--teacher", "oracle", "--total-timesteps", "16000", "--unsup-steps", "3000",
+WHOLE_RUN = ["--env-id", "Hopper-v5", "--teacher", "oracle", "--total-timesteps", "16000", "--unsup-steps", "3000",
              "--feedback-every", "3000", "--max-feedback", "400", "--feedback-per-session", "100", "--eval-every",
              "1000", "--eval-episodes", "1", "--hidden-dim", "1024", "--num-layers", "2", "--batch-size", "1024"]
 
@@ -101,7 +101,7 @@ def main():
             subprocess.run([sys.executable, str(ROOT / f"{script}.py"), *WHOLE_RUN, "--output-dir", str(out),
                             *extra], check=True, stdout=subprocess.DEVNULL)
             runs[name] = phases(walls(out))
-        print(f"\nWhole {script}.py run, walker-walk, 1024 x 2, batch 1024 (steps/s):\n")
+        print(f"\nWhole {script}.py run, Hopper-v5, 1024 x 2, batch 1024 (steps/s):\n")
         print("| phase | eager | --compile | ratio |\n|---|---:|---:|---:|")
         for phase in runs["eager"]:
             eager, compiled = runs["eager"][phase], runs["--compile"][phase]
