@@ -3,7 +3,7 @@
 # 1. tests/test_cuda_graph.py on real CUDA graphs (replayed SAC updates, r_hat and actions against eager ones);
 # 2. tiny Hopper-v5 runs of pebble.py and rime.py: eager, --compile, and --compile stopped by SIGTERM after its
 #    first checkpoint then resumed (its eval.csv must equal the uninterrupted compiled run's);
-# 3. two seeds of a short pebble.py run (Hopper-v5, 256 x 2, 20K steps), eager and --compile: the curves side by side.
+# 3. two seeds of a short pebble.py run (Hopper-v5, 256 x 2, 16K steps), eager and --compile: the curves side by side.
 # Run from the repository root with the requirements installed: OUT=some/dir bash benchmarks/gpu_compile_check.sh
 # (A machine without network access takes the packages as .whl/, made here by benchmarks/gpu_wheels.sh.)
 if [ -d .whl ]; then
@@ -18,7 +18,7 @@ start=$(date +%s)
 timeout 150 python3 -m pytest -p no:cacheprovider -n 0 -q -rs tests/test_cuda_graph.py 2>&1 | tail -n 15
 echo "tests: $(( $(date +%s) - start )) s"
 T="--env-id Hopper-v5 --seed 3 --total-timesteps 3000 --seed-steps 500 --unsup-steps 600 --feedback-every 500 --max-feedback 40 --feedback-per-session 10 --segment-len 10 --eval-every 500 --checkpoint-every 1300 --hidden-dim 32 --num-layers 2 --batch-size 32 --reward-epochs 3 --reward-batch-size 32 --eval-episodes 1"
-C="--env-id Hopper-v5 --total-timesteps 20000 --unsup-steps 4000 --feedback-every 4000 --max-feedback 200 --feedback-per-session 50 --eval-every 4000 --eval-episodes 5 --hidden-dim 256 --num-layers 2 --batch-size 256 --checkpoint-every 0"
+C="--env-id Hopper-v5 --total-timesteps 16000 --unsup-steps 4000 --feedback-every 4000 --max-feedback 200 --feedback-per-session 50 --eval-every 4000 --eval-episodes 5 --hidden-dim 256 --num-layers 2 --batch-size 256 --checkpoint-every 0"
 start=$(date +%s)
 for s in pebble rime; do
   timeout 240 python3 $s.py $T --output-dir $R/$s-eager > $OUT/$s-eager.log 2>&1 &
