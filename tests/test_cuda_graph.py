@@ -74,7 +74,7 @@ def graphs(request, monkeypatch):
     return torch.device(request.param)
 
 
-def sac_run(script, device, graphed, calls=12, reset_at=6):
+def sac_run(script, device, graphed, calls=12, reset_at=6, update=None):
     """`calls` SAC updates and target updates (every 2nd), pebble's critic reset after `reset_at`: (losses, state)."""
     torch.manual_seed(0)
     actor = script.Actor(5, 2, 16, 2).to(device)
@@ -82,7 +82,7 @@ def sac_run(script, device, graphed, calls=12, reset_at=6):
     log_alpha = torch.zeros((), device=device, requires_grad=True)
     capturable = graphed and device.type == "cuda"
     optimizers = [script.adam(p, 1e-3, capturable) for p in (actor.parameters(), critic.parameters(), [log_alpha])]
-    sac_step = functools.partial(script.sac_update, actor=actor, critic=critic, critic_target=target,
+    sac_step = functools.partial(update or script.sac_update, actor=actor, critic=critic, critic_target=target,
                                  log_alpha=log_alpha, actor_opt=optimizers[0], critic_opt=optimizers[1],
                                  alpha_opt=optimizers[2], gamma=0.99)
     target_update = functools.partial(script.soft_update, critic, target, 0.005)
@@ -121,6 +121,21 @@ def test_replayed_sac_updates_are_the_eager_ones(script, graphs):
         assert all(torch.allclose(a, b, rtol=1e-4, atol=1e-5) for a, b in zip(state, eager_state))
     torch.manual_seed(0)
     assert not torch.equal(state[0], script.Actor(5, 2, 16, 2).net[0].weight.detach())  # the updates moved it
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU")
+def test_replayed_compiled_sac_updates_are_the_compiled_ones():
+    """--compile on a GPU: torch.compile's kernels (its own random draws) inside the recorded graph, against the
+    same compiled function called eagerly."""
+    import torch._dynamo
+
+    torch._dynamo.reset()
+    compiled = torch.compile(pebble.sac_update)
+    eager_losses, eager_state = sac_run(pebble, torch.device("cuda"), graphed=False, update=compiled)
+    losses, state = sac_run(pebble, torch.device("cuda"), graphed=True, update=compiled)
+    for eager, replayed in zip(eager_losses, losses):
+        assert replayed == pytest.approx(eager, rel=1e-4, abs=1e-5)
+    assert all(torch.allclose(a, b, rtol=1e-4, atol=1e-5) for a, b in zip(state, eager_state))
 
 
 def test_reset_critic_zeroes_adams_moments_in_place():
