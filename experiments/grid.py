@@ -121,6 +121,8 @@ CPU_METAWORLD = ("--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --bat
 # sweep-into: the pilot's SAC succeeds at every evaluation from 110K steps on (docs/results.md), so 150K steps;
 # the same sessions of 50 every 4950 steps from step 10,001, 28 of them (1400 labels) as button-press's 18 in 100K
 CPU_SWEEP_INTO = CPU_METAWORLD.replace("--total-timesteps 100000", "--total-timesteps 150000")
+# quadruped-walk: the pilots' 250K steps (1.7 h a run on one core); 10 sessions of 100 every 24K from step 10,001
+CPU_QUADRUPED = CPU_PILOT + " --feedback-every 24000"
 PRESETS = {
     "custom": ("a grid of your own (defaults: PEBBLE, walker-walk, six teachers, the task's budget, 3 seeds)", Grid()),
     "mini-bpref": ("PEBBLE on walker-walk at CPU size: six teachers + ground truth, 5 seeds, about 1.5 h on 2 cores "
@@ -145,6 +147,11 @@ PRESETS = {
         "150K steps, 256 x 2, batch 256, 3 seeds",
         Grid(env_ids=("sweep-into",), teachers=("oracle",), budgets=("1400/50",), root="runs/sweep-into",
              flags=CPU_SWEEP_INTO)),
+    "quadruped-walk-cpu": (
+        "PEBBLE (oracle, 1000 labels in sessions of 100 every 24K steps) and SAC on the true reward, quadruped-walk, "
+        "250K steps, 256 x 2, batch 256, 3 seeds",
+        Grid(env_ids=("quadruped-walk",), teachers=("oracle",), budgets=("1000/100",), root="runs/quadruped-walk",
+             flags=CPU_QUADRUPED)),
     # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
     "parity-pebble": (
         "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",

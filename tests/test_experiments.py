@@ -487,3 +487,18 @@ def test_metaworld_cpu_presets_keep_the_papers_sessions_and_spend_their_budget(p
                            args.total_timesteps)
     spent = planned_labels(sizes, first, args.feedback_every, args.total_timesteps)
     assert spent == args.max_feedback == {100_000: 900, 150_000: 1400}[args.total_timesteps]
+
+
+def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_steps(monkeypatch):
+    runs = grid.expand(grid.PRESETS["quadruped-walk-cpu"][1])
+    assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
+    (run,) = [r for r in runs if "--teacher" in r.flags and r.name.endswith("__s1")]
+    monkeypatch.setattr(sys, "argv", ["pebble.py", *run.flags])
+    args = pebble.parse_args()
+    assert (args.learning_rate, args.hidden_dim, args.batch_size) == (1e-4, 256, 256)  # the preset's rate kept
+    first = args.seed_steps + args.unsup_steps + 1
+    steps = session_steps(first, args.feedback_every, args.total_timesteps)
+    sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps - 1,
+                           args.total_timesteps)
+    assert list(sizes) == [100] * 10 and steps[-1] == 10_001 + 9 * 24_000 < args.total_timesteps == 250_000
+    assert planned_labels(sizes, first, args.feedback_every, args.total_timesteps) == 1000
