@@ -60,6 +60,9 @@ class Args:
     compare: tuple[str, str] | None = None
     """NEW BASE: also set two algorithms side by side on every setting both ran (e.g. rime pebble): difference
     NEW - BASE with its CI, curves in one plot, RIME's discriminator; written to OUT/compare_NEW_BASE.md"""
+    against_ground_truth: bool = False
+    """also set each preference setting beside its algorithm's ground-truth runs on its task (difference with its
+    CI, Welch's p, a verdict; Meta-World by success rate, then return): OUT/against_ground_truth.md"""
 
 
 @dataclass
@@ -630,6 +633,38 @@ def compare_pairs(runs: list[Run], new: str, base: str) -> list[tuple[tuple, lis
             if setting[0] == new and (base, *setting[1:]) in groups]
 
 
+def ground_truth_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
+    """(a preference setting, its finished runs, its algorithm's finished ground-truth runs on its task), for every
+    preference setting with both; on Meta-World by the success rate, then again by the return."""
+    groups = finished_by_setting(runs)
+    pairs = []
+    for setting in sorted(groups, key=sort_key):
+        truth = (setting[0], setting[1], GROUND_TRUTH, "-", "-", "-")
+        if setting[2] != GROUND_TRUTH and truth in groups:
+            pairs.append((setting, groups[setting], groups[truth]))
+            if groups[setting][0].metric == "success_rate":
+                pairs.append((setting, by_return(groups[setting]), by_return(groups[truth])))
+    return pairs
+
+
+def ground_truth_markdown(rows: list[dict], figures: list[Path], target: Path, command: str, reps: int) -> str:
+    """Each preference setting beside the same algorithm on the true reward (the --against-ground-truth page)."""
+    names = ("preferences", "true reward")
+    lines = ["# Preferences against the true reward", "",
+             f"Made by `{command}` from the finished runs: each preference setting beside the same algorithm's runs "
+             "with `--ground-truth-reward` on the same task. Final = the last evaluation's score (Meta-World: the "
+             f"success rate, then the return); IQM with its 95% bootstrap CI (rliable, {reps} replications); "
+             "difference = preferences - true reward, 95% percentile bootstrap CI with seeds resampled within each "
+             "arm, and Welch's p beside it (with few seeds the bootstrap interval is too narrow).", ""]
+    for row, figure in zip(rows, figures):
+        lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
+                  f"{row['sampler']}, {row['schedule']}: {row['metric'].replace('_', ' ')}", "",
+                  f"**Verdict: {verdict(row, names)}.**", ""]
+        lines += arms_table(row, names)
+        lines += [f"![{figure.stem}]({os.path.relpath(figure, target.parent)})", ""]
+    return "\n".join(lines)
+
+
 def discriminator(run: Run) -> dict | None:
     """RIME's discriminator at the run's last feedback session (its label file's trusted, flipped, dropped,
     precision and recall), or None for a run without them."""
@@ -938,6 +973,21 @@ def report(args: Args) -> Path:
         write_csv(out / safe_file(f"compare_{'_'.join(names)}.csv"), [flat(row) for row in rows])
         for row in rows:
             print(f"compare: {' / '.join(row[c] for c in SETTING[1:])}: {verdict(row, names)}")
+    if args.against_ground_truth:
+        pairs = ground_truth_pairs(runs)
+        if not pairs:
+            raise ReportError(f"--against-ground-truth: no preference setting below {root} has finished runs beside "
+                              "finished ground-truth runs of its algorithm and task")
+        rows = parity_rows(pairs, args.reps, args.seed)
+        figures = [parity_figure(setting, {"preferences": a, "true reward": b}, out,
+                                 f"ground_truth_{a[0].metric}") for setting, a, b in pairs]
+        target = out / "against_ground_truth.md"
+        command = shlex.join(["python", "experiments/report.py", *sys.argv[1:]])
+        target.write_text(ground_truth_markdown(rows, figures, target, command, args.reps))
+        write_csv(out / "against_ground_truth.csv", [flat(row) for row in rows])
+        for row in rows:
+            print(f"against the true reward: {' / '.join(row[c] for c in SETTING)}, {row['metric']}: "
+                  f"{verdict(row, ('preferences', 'true reward'))}")
     (out / "report.md").write_text("\n".join(lines))
     write_csv(out / "runs.csv", run_rows)
     write_csv(out / "aggregates.csv", [flat(row) for row in settings])

@@ -479,6 +479,38 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     assert refused.returncode != 0 and "--compare rime prefppo: no setting below" in refused.stderr
 
 
+def test_report_sets_each_preference_setting_beside_its_algorithm_s_ground_truth_runs(tmp_path):
+    root = tmp_path / "tasks"
+    button = {"env_id": "button-press"}
+    for seed, (final, rate) in enumerate([(900, 0.2), (1000, 0.0), (1100, 0.3)], 1):
+        write_run(root, f"pebble_{seed}", seed, [60, final], extra=button, success=(0, rate))
+    for seed, (final, rate) in enumerate([(4000, 1.0), (4100, 0.9), (4200, 1.0)], 1):
+        write_run(root, f"sac_{seed}", seed, [50, final], extra=button | {"ground_truth_reward": True},
+                  success=(0, rate))
+    write_run(root, "rime_1", 1, [50, 300], extra=button | {"rime_alpha": 0.5})  # no rime.py run on the true reward
+    write_run(root, "walker_1", 1, [50, 300])  # no run on the true reward on walker-walk
+    command = [sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000", "--alignment-runs",
+               "0", "--against-ground-truth"]
+    result = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = (root / "report" / "against_ground_truth.md").read_text()
+    assert text.count("\n## ") == 2  # pebble on button-press only: by success rate, then by return
+    setting = "## pebble on button-press, teacher oracle, budget 1000/100, disagreement, uniform"
+    success, returns = text.index(f"{setting}: success rate\n"), text.index(f"{setting}: episode return\n")
+    by_success, by_return = text[success:returns], text[returns:]
+    assert "**Verdict: lower: preferences - true reward = -0.80 (83% of true reward's mean), 95% CI [" in by_success
+    assert "| preferences | 1 2 3 | 0.17 ± 0.12 | 0.2 0.0 0.3 | 0.08 |" in by_success
+    assert "| true reward | 1 2 3 | 0.97 ± 0.05 | 1.0 0.9 1.0 | 0.48 |" in by_success
+    assert "**Verdict: lower: preferences - true reward = -3100.0 (" in by_return
+    assert "against the true reward: pebble / button-press / oracle / 1000/100 / disagreement / uniform, " \
+           "success_rate: lower" in result.stdout
+    with open(root / "report" / "against_ground_truth.csv") as f:
+        assert [row["metric"] for row in csv.DictReader(f)] == ["success_rate", "episode_return"]
+    refused = subprocess.run([*command[:2], str(root / "rime_1"), *command[3:]], capture_output=True, text=True,
+                             env=ENV, cwd=ROOT)
+    assert refused.returncode == 2 and "--against-ground-truth: no preference setting below" in refused.stderr
+
+
 def test_a_verdict_is_higher_lower_or_no_difference_detected_and_level_only_with_a_narrow_ci():
     ours, reference = np.array([500.0, 700.0, 600.0]), np.array([650.0, 550.0, 600.0])
     point, low, high = report.difference_ci(ours, reference, 4000, 0)
