@@ -29,8 +29,8 @@ PREFPPO = "--total-timesteps 300 --num-envs 2 --num-steps 50 --minibatch-size 50
 TINY_GRID = ["--algorithms", "pebble", "prefppo", "--env-ids", "Hopper-v5", "--teachers", "oracle",
              "--budgets", "20/10", "--seeds", "1", "2", f"--flags={COMMON}", f"--pebble-flags={PEBBLE}",
              f"--prefppo-flags={PREFPPO}", "--progress-every", "5"]
-TEACHER_RUNS = [f"{a}__Hopper-v5__{t}__fb20-10__disagreement__uniform__s{s}"
-                for a in ("pebble", "prefppo") for t in ("oracle",) for s in (1, 2)]
+TEACHER_RUNS = [f"{a}__Hopper-v5__oracle__fb20-10__disagreement__uniform__s{s}" for a in ("pebble", "prefppo")
+                for s in (1, 2)]
 GROUND_TRUTH_RUNS = [f"{a}__Hopper-v5__ground-truth__s{s}" for a in ("pebble", "prefppo") for s in (1, 2)]
 
 
