@@ -121,7 +121,7 @@ CPU_METAWORLD = ("--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --bat
 # sweep-into: the pilot's SAC succeeds at every evaluation from 110K steps on (docs/results.md), so 150K steps;
 # the same sessions of 50 every 4950 steps from step 10,001, 28 of them (1400 labels) as button-press's 18 in 100K
 CPU_SWEEP_INTO = CPU_METAWORLD.replace("--total-timesteps 100000", "--total-timesteps 150000")
-# quadruped-walk: the pilots' 250K steps (1.7-3 h a run on a core here); 10 sessions of 100 every 24K from 10,001
+# quadruped-walk: the pilots' 250K steps (2-2.7 h a run on a core here); 10 sessions of 100 every 24K from 10,001
 CPU_QUADRUPED = CPU_PILOT + " --feedback-every 24000"
 PRESETS = {
     "custom": ("a grid of your own (defaults: PEBBLE, walker-walk, six teachers, the task's budget, 3 seeds)", Grid()),
