@@ -19,11 +19,12 @@ import pebble
 import sim_teacher
 from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_in_one_interpreter, run_script, saved_labels, start_script, wait_for
 
-# Tiny walker-walk runs. pebble: sessions at 1001 (after the first episode: segments come from complete ones), 1101
-# and 1201, a checkpoint at 1050 (mid-episode); prefppo: sessions at 2000, 3000, 4000, checkpoints after the
+# Tiny walker-walk runs. pebble: random steps to 700 (500 fewer SAC updates than from 200: the suite's time), then
+# pre-training to 1000; sessions at 1001 (after the first episode: segments come from complete ones), 1101 and 1201, a
+# checkpoint at 1050 (mid-episode); prefppo: sessions at 2000, 3000, 4000, checkpoints after the
 # rollouts ending at 2000 and 4000
 RUNS = {
-    "pebble.py": ["--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "200", "--unsup-steps", "800",
+    "pebble.py": ["--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "700", "--unsup-steps", "300",
                   "--feedback-every", "100", "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
                   "--eval-every", "650", "--checkpoint-every", "1050", "--hidden-dim", "32", "--num-layers", "2",
                   "--batch-size", "32", "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"],
