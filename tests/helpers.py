@@ -26,7 +26,12 @@ ENV = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
 def run_script(script: str, out: Path, *flags: str, timeout: int = 600, env: dict | None = None) -> subprocess.CompletedProcess:
     """The script as a user runs it (forked, ForkedRun); `env` adds or overrides environment variables (then a new
     interpreter: they are read when it starts)."""
-    cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
+    return run_cli(script, "--output-dir", str(out), *flags, timeout=timeout, env=env)
+
+
+def run_cli(script: str, *args: str, timeout: int = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+    """`python SCRIPT ARGS` (a path relative to the repository), forked as run_script's runs are."""
+    cmd = [sys.executable, str(ROOT / script), *args]
     if env:
         return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV | env, cwd=ROOT)
     process = ForkedRun(cmd)

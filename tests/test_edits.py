@@ -9,16 +9,16 @@ import pytest
 import torch
 
 from benchmarks.reference.edits import EDITS, edited_source
-from tests.helpers import ENV, ROOT
+from tests.helpers import ENV, ROOT, run_cli
 
-EDIT_SCRIPT = ROOT / "benchmarks" / "reference" / "edits.py"
+EDIT_SCRIPT = "benchmarks/reference/edits.py"
 CASES = [(name, script) for name, scripts in EDITS.items() for script in scripts]
 
 
 @pytest.mark.parametrize("name, script", CASES, ids=[f"{n}-{s}" for n, s in CASES])
 def test_an_edited_copy_differs_in_the_edited_lines_only(name, script, tmp_path):
     copy = tmp_path / script
-    result = subprocess.run([sys.executable, str(EDIT_SCRIPT), name, "--write", str(copy), "--", script],
+    result = subprocess.run([sys.executable, str(ROOT / EDIT_SCRIPT), name, "--write", str(copy), "--", script],
                             capture_output=True, text=True, env=ENV, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     original = (ROOT / script).read_text().splitlines(keepends=True)
@@ -47,8 +47,7 @@ def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(scri
              "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
              "--eval-every", "700", "--hidden-dim", "32", "--batch-size", "32", "--reward-epochs", "3",
              "--reward-batch-size", "32", "--eval-episodes", "1", "--output-dir", str(out)]
-    result = subprocess.run([sys.executable, str(EDIT_SCRIPT), "raw-reward-inputs", "--", script, *flags],
-                            capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=600)
+    result = run_cli(EDIT_SCRIPT, "raw-reward-inputs", "--", script, *flags)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.count("reward model trained on") == 2
     saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]

@@ -5,7 +5,6 @@ with one line and a non-zero exit before any training."""
 
 import json
 import math
-import subprocess
 import sys
 
 import numpy as np
@@ -16,8 +15,8 @@ import torch.nn.functional as F
 import prefppo
 from samplers import planned_labels, schedule_sizes
 import tests.toy_envs  # noqa: F401  (registers ConstantPenalty-v0)
-from tests.helpers import (ENV, ROOT, assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve,
-                           eval_rows, run_in_one_interpreter, run_script, saved_labels, scalars, session_lines)
+from tests.helpers import (ROOT, assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve,
+                           eval_rows, run_cli, run_in_one_interpreter, run_script, saved_labels, scalars, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--reward-epochs", "3", "--reward-batch-size", "32",
         "--eval-episodes", "1", "--update-epochs", "2", "--unsup-update-epochs", "2"]
@@ -29,9 +28,8 @@ def run_prefppo(out, *flags, timeout=600):
 
 def run_edited(edit, out, *flags, timeout=600):
     """prefppo.py with one of benchmarks/reference/edits.py's edits (the reference's way), as a user runs it."""
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "reference" / "edits.py"), edit, "--", "prefppo.py",
-           "--output-dir", str(out), *flags]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT)
+    return run_cli("benchmarks/reference/edits.py", edit, "--", "prefppo.py", "--output-dir", str(out), *flags,
+                   timeout=timeout)
 
 
 def adam_steps(out) -> int:
