@@ -448,8 +448,8 @@ def check_complete_run(out, result, n_sessions: int, obs_dim: int, segment_len: 
 
 def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
     out = tmp_path / "walker"
-    result = run_pebble(out, "--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "500",
-                        "--unsup-steps", "500", "--feedback-every", "100", "--max-feedback", "30",
+    result = run_pebble(out, "--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "800",
+                        "--unsup-steps", "200", "--feedback-every", "100", "--max-feedback", "30",
                         "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1100", *TINY)
     rows, labels = check_complete_run(out, result, n_sessions=3, obs_dim=24, segment_len=10)
     assert [int(r["step"]) for r in rows] == [1100, 1300]  # every 1100 and the last step
