@@ -387,12 +387,13 @@ def rational_biased(bias: float, counts: dict) -> tuple[float, float, float]:
     the counts of labels with, against and tied with the returns on each side (side_counts)."""
     eps = np.linspace(0.0, 0.5, 201)
     l0, l1, k = (np.array(v) for v in zip(*(lapses(float(e), bias) for e in eps)))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        loglik = 0.0
-        for side, lapse in ((1.0, l1), (-1.0, l0)):
-            for count, share in zip(counts[side], (1.0, 0.0, 0.5)):
-                term = np.log(lapse + k * share)[:, None] * count[None]  # (E, G)
-                loglik = loglik + np.where(count[None] > 0, term, 0.0)
+    # P(a label) at each eps, (E, 6), and the number of such labels at each gamma, (6, G): with,
+    # against and tied with the returns, on each side
+    p = np.stack([lapse + k * share for lapse in (l1, l0) for share in (1.0, 0.0, 0.5)], 1)
+    n = np.stack([count for side in (1.0, -1.0) for count in counts[side]]).astype(float)
+    with np.errstate(divide="ignore"):
+        loglik = np.einsum("ek,kg->eg", np.where(p > 0, np.log(p), 0.0), n)
+    loglik[(p == 0) @ (n > 0)] = -np.inf  # a label of probability 0 (0 log 0 = 0 otherwise)
     e, g = np.unravel_index(np.argmax(loglik), loglik.shape)
     return float(loglik[e, g]), float(DENSE_GAMMAS[g]), float(eps[e])
 
