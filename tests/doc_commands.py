@@ -16,6 +16,7 @@ comment, else the last count stated before it in its paragraph ("5 seeds", "thre
 """
 
 import contextlib
+import functools
 import importlib
 import io
 import re
@@ -104,6 +105,12 @@ def known_flags(path: Path, prefix: tuple[str, ...] = ()) -> set[str] | str:
     return HELP[key]
 
 
+@functools.cache
+def episode_len(script: str, env_id: str) -> int:
+    """The script's make_env(env_id)'s episode length; each environment is built once."""
+    return importlib.import_module(script.removesuffix(".py")).make_env(env_id)[1]
+
+
 def parse_algorithm(script: str, argv: list[str]) -> str | None:
     """What the script says before any work for these flags: None if they pass, else its error line."""
     module = importlib.import_module(script.removesuffix(".py"))
@@ -113,8 +120,7 @@ def parse_algorithm(script: str, argv: list[str]) -> str | None:
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             args = module.parse_args()
-            _, episode_len = module.make_env(args.env_id)
-            module.check_args(args, episode_len)
+            module.check_args(args, episode_len(script, args.env_id))
     except SystemExit as exit_:
         return None if not exit_.code else (err.getvalue().strip() or f"exit {exit_.code}")
     except (ValueError, OSError) as error:

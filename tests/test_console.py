@@ -16,7 +16,12 @@ import prefppo
 import rime
 from experiments import grid
 from tests.helpers import ENV, ROOT, run_script
-from tests.test_pebble import PENDULUM
+from tests.test_pebble import TINY
+
+# Pendulum, 400 steps: pre-training from step 101, sessions at 201, 251 and 301, an evaluation at the end
+SHORT = ["--env-id", "Pendulum-v1", "--total-timesteps", "400", "--seed-steps", "100", "--unsup-steps", "100",
+         "--feedback-every", "50", "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
+         "--eval-every", "400", *TINY]
 
 
 class Clock:
@@ -134,11 +139,11 @@ def test_grid_reads_its_time_left_from_a_run_s_progress_lines(tmp_path, capsys, 
 
 def test_a_whole_run_s_log_ends_with_its_last_progress_line(tmp_path):
     out = tmp_path / "run"
-    result = run_script("pebble.py", out, *PENDULUM, timeout=300)
+    result = run_script("pebble.py", out, *SHORT, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     lines = result.stdout.splitlines()
-    assert lines[0].startswith("pebble on the CPU (torch threads: 1): 1100 steps, 30 labels planned; outputs in")
-    assert lines[-2].startswith("step 1100/1100 | ") and lines[-2].endswith(" | labels 30/30")
+    assert lines[0].startswith("pebble on the CPU (torch threads: 1): 400 steps, 30 labels planned; outputs in")
+    assert lines[-2].startswith("step 400/400 | ") and lines[-2].endswith(" | labels 30/30")
     assert lines[-1].startswith("done: 3 feedback sessions")
     log = tmp_path / "run.log"
     log.write_text(result.stdout)
@@ -150,7 +155,7 @@ def test_on_a_terminal_the_line_is_rewritten_in_place(tmp_path):
     """A real pseudo-terminal: the progress line starts with a carriage return and clears what is left of the old
     one; each other message first clears the progress line."""
     main, child = pty.openpty()
-    cmd = [sys.executable, str(ROOT / "pebble.py"), "--output-dir", str(tmp_path / "run"), *PENDULUM]
+    cmd = [sys.executable, str(ROOT / "pebble.py"), "--output-dir", str(tmp_path / "run"), *SHORT]
     process = subprocess.Popen(cmd, stdout=child, stderr=subprocess.DEVNULL, env=ENV, cwd=ROOT)
     os.close(child)
     chunks = []
@@ -164,6 +169,6 @@ def test_on_a_terminal_the_line_is_rewritten_in_place(tmp_path):
         chunks.append(chunk)
     assert process.wait(timeout=300) == 0
     text = b"".join(chunks).decode()
-    assert "\rstep 1100/1100 | " in text and "\x1b[K" in text
+    assert "\rstep 400/400 | " in text and "\x1b[K" in text
     assert "\r\x1b[Kdone: 3 feedback sessions" in text
-    assert "\nstep 1100/1100" not in text  # never a line of its own
+    assert "\nstep 400/400" not in text  # never a line of its own

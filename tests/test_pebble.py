@@ -463,8 +463,8 @@ def test_smoke_dmc_walker_reaches_every_phase(tmp_path):
 
 def test_smoke_metaworld_button_press_reaches_every_phase(tmp_path):
     out = tmp_path / "button"
-    result = run_pebble(out, "--env-id", "button-press", "--total-timesteps", "1600", "--seed-steps", "300",
-                        "--unsup-steps", "300", "--feedback-every", "400", "--max-feedback", "30",
+    result = run_pebble(out, "--env-id", "button-press", "--total-timesteps", "1600", "--seed-steps", "1000",
+                        "--unsup-steps", "300", "--feedback-every", "100", "--max-feedback", "30",
                         "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "800",
                         "--sampler", "entropy", *TINY)
     rows, _ = check_complete_run(out, result, n_sessions=3, obs_dim=39, segment_len=10)
@@ -493,9 +493,9 @@ SCHEDULE_RUNS = {
 
 @pytest.fixture(scope="module")
 def schedule_runs(tmp_path_factory):
-    """name -> (output dir, result) of each of SCHEDULE_RUNS, and "again": stoc-mistake-myopic's run repeated."""
+    """name -> (output dir, result) of each of SCHEDULE_RUNS (a repeated run gives the same run: test_resume.py)."""
     runs = {}
-    for name, flags in [*SCHEDULE_RUNS.items(), ("again", SCHEDULE_RUNS["stoc-mistake-myopic"])]:
+    for name, flags in SCHEDULE_RUNS.items():
         out = tmp_path_factory.mktemp("schedules") / name
         runs[name] = out, run_pebble(out, *PENDULUM, *flags, "--no-cuda")
     return runs
@@ -573,13 +573,6 @@ def test_reset_critic_is_orthogonal_and_the_temperature_has_its_own_learning_rat
     assert lrs == {"actor": 1e-12, "critic": 1e-12, "alpha": 1e-4}  # --alpha-lr's default, reference code
     assert abs(saved["log_alpha"].item() - math.log(0.1)) > 1e-3  # the temperature did learn at 1e-4
     assert json.loads((out / "config.json").read_text())["alpha_lr"] == 1e-4
-
-
-def test_same_seed_gives_the_same_run_on_cpu(schedule_runs):
-    (first, result), (second, again) = schedule_runs["stoc-mistake-myopic"], schedule_runs["again"]
-    assert result.returncode == again.returncode == 0
-    assert eval_curve(first) == eval_curve(second)
-    assert [s["y"].tolist() for s in saved_labels(first)] == [s["y"].tolist() for s in saved_labels(second)]
 
 
 # ---------------------------------------------------------------- bad input: one line, non-zero exit, nothing run

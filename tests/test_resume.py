@@ -21,13 +21,14 @@ from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_in_one_interpret
 
 # Tiny walker-walk runs. pebble: random steps to 700 (500 fewer SAC updates than from 200: the suite's time), then
 # pre-training to 1000; sessions at 1001 (after the first episode: segments come from complete ones), 1101 and 1201, a
-# checkpoint at 1050 (mid-episode); prefppo: sessions at 2000, 3000, 4000, checkpoints after the
-# rollouts ending at 2000 and 4000
+# checkpoint at 1050 (mid-episode), a teacher that draws its answers (myopic, beta 1, mistakes: a resumed or repeated
+# run must draw the same); prefppo: sessions at 2000, 3000, 4000, checkpoints after the rollouts ending at 2000 and 4000
 RUNS = {
     "pebble.py": ["--env-id", "walker-walk", "--total-timesteps", "1300", "--seed-steps", "700", "--unsup-steps", "300",
                   "--feedback-every", "100", "--max-feedback", "30", "--feedback-per-session", "10", "--segment-len", "10",
                   "--eval-every", "650", "--checkpoint-every", "1050", "--hidden-dim", "32", "--num-layers", "2",
-                  "--batch-size", "32", "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1"],
+                  "--batch-size", "32", "--reward-epochs", "3", "--reward-batch-size", "32", "--eval-episodes", "1",
+                  "--teacher", "myopic", "--teacher-beta", "1", "--teacher-eps-mistake", "0.1"],
     "prefppo.py": ["--env-id", "walker-walk", "--total-timesteps", "5000", "--unsup-steps", "1000", "--num-envs", "2",
                    "--num-steps", "250", "--minibatch-size", "250", "--feedback-every", "1000", "--max-feedback", "40",
                    "--feedback-per-session", "10", "--segment-len", "10", "--eval-every", "1000", "--checkpoint-every",
@@ -65,8 +66,9 @@ def assert_same_run(resumed, reference):
 
 
 def test_a_forked_run_equals_the_same_command_in_a_new_interpreter(tmp_path, uninterrupted):
-    """The suite's runs are forked from a server that has torch and the environments imported (tests/helpers.py
-    ForkedRun): what a run writes must not depend on it."""
+    """The same command twice gives the same run (its teacher's draws included), and the suite's runs are forked from
+    a server that has torch and the environments imported (tests/helpers.py ForkedRun): what a run writes must not
+    depend on it."""
     out = tmp_path / "run"
     result = run_script("pebble.py", out, *RUNS["pebble.py"], env={"OMP_NUM_THREADS": "1"})  # env: a new interpreter
     assert result.returncode == 0, result.stderr[-3000:]
@@ -282,10 +284,15 @@ def limit_file_size():
     resource.setrlimit(resource.RLIMIT_FSIZE, (2 * 2**20, 2 * 2**20))
 
 
+# the first evaluation, then the first checkpoint (over 2 MiB: the reward model and its Adam state) at the same step
+FIRST_CHECKPOINT = {"pebble.py": ["--eval-every", "200", "--checkpoint-every", "200"],
+                    "prefppo.py": ["--eval-every", "1000", "--checkpoint-every", "1000"]}
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_path):
     out = tmp_path / "run"
-    process = start_script(script, out, *RUNS[script], preexec_fn=limit_file_size)
+    process = start_script(script, out, *RUNS[script], *FIRST_CHECKPOINT[script], preexec_fn=limit_file_size)
     stdout, stderr = process.communicate(timeout=300)
     assert process.returncode == 3 and "Traceback" not in stderr
     lines = stderr.strip().splitlines()

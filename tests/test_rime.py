@@ -121,9 +121,9 @@ def test_the_warm_start_fits_r_hat_to_the_kNN_reward_scaled_into_minus_one_one()
         assert np.corrcoef(member[:, 0], target[:, 0])[0, 1] > 0.9
 
 
-# random steps to 800, pre-training (the warm start) to 1000, then a session every 100 steps
-RUN = ["--env-id", "walker-walk", "--seed", "3", "--total-timesteps", "1300", "--seed-steps", "800", "--unsup-steps",
-       "200", "--feedback-every", "100", "--max-feedback", "60", "--feedback-per-session", "20", "--segment-len",
+# random steps to 900, pre-training (the warm start) to 1000, then a session every 100 steps
+RUN = ["--env-id", "walker-walk", "--seed", "3", "--total-timesteps", "1300", "--seed-steps", "900", "--unsup-steps",
+       "100", "--feedback-every", "100", "--max-feedback", "60", "--feedback-per-session", "20", "--segment-len",
        "10", "--eval-every", "650", "--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32",
        "--reward-epochs", "20", "--reward-batch-size", "32", "--eval-episodes", "1", "--rime-min-epochs", "2",
        "--teacher", "mistake", "--teacher-eps-mistake", "0.3", "--checkpoint-every", "650"]
