@@ -1,6 +1,6 @@
 """Each pytest-xdist worker computes on one thread: the two workers share two cores (and the scripts they start
-run with OMP_NUM_THREADS=1, tests/helpers.py). Every interpreter the tests start exits without the final garbage
-collections (tests/fast_exit/sitecustomize.py)."""
+run with OMP_NUM_THREADS=1, tests/helpers.py). Every interpreter the tests start skips the final searches for
+reference cycles at its exit (tests/fast_exit/sitecustomize.py)."""
 
 import os
 from pathlib import Path

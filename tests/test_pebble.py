@@ -17,7 +17,7 @@ import torch
 import pebble
 from samplers import SAMPLERS, SCHEDULES, planned_labels, schedule_sizes, session_steps
 from sim_teacher import TEACHERS, make_teacher
-from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_curve, eval_rows,
+from tests.helpers import (assert_inputs_standardised_by_labelled_states, assert_refused_by_tyro, assert_rejected, eval_rows,
                            assert_pebble_phases, run_in_one_interpreter, run_script, scalars, saved_labels, session_lines)
 
 TINY = ["--hidden-dim", "32", "--num-layers", "2", "--batch-size", "32", "--reward-epochs", "3",
