@@ -681,7 +681,7 @@ def evaluate(policy, reward_model, env, seeds, device):
     returns = []
     successes = []
     true_rewards = []
-    learned = []
+    obs_actions = []
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
         done = False
@@ -690,17 +690,18 @@ def evaluate(policy, reward_model, env, seeds, device):
         while not done:
             with torch.no_grad():
                 action = policy(obs)
-                if reward_model is not None:
-                    obs_action = torch.cat([torch.as_tensor(obs, device=device), action])
-                    learned.append(reward_model(obs_action).mean().item())
+            obs_actions.append(torch.cat([torch.as_tensor(obs, device=device), action]))
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
             done = terminated or truncated
             returns[-1] += reward
             successes[-1] = successes[-1] or bool(info.get("success"))
             true_rewards.append(reward)
     correlation = math.nan
-    if learned and min(np.std(learned), np.std(true_rewards)) > 0:
-        correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
+    if reward_model is not None:
+        with torch.no_grad():  # r_hat of every evaluated step, in one batch
+            learned = reward_model(torch.stack(obs_actions)).mean(0).flatten().cpu().numpy()
+        if min(np.std(learned), np.std(true_rewards)) > 0:
+            correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
             "success_rate": float(np.mean(successes)), "reward_correlation": correlation}
 

@@ -396,8 +396,8 @@ def reward_alignment(run: Run) -> tuple[np.ndarray, np.ndarray]:
             return result
 
     def recorded_reward_model(obs_action):
-        rewards = reward_model(obs_action)
-        learned_rewards.append(rewards.mean().item())
+        rewards = reward_model(obs_action)  # evaluate() asks for the episode's steps in one batch
+        learned_rewards.extend(rewards.mean(0).flatten().tolist())
         return rewards
 
     policy = module.mean_policy(actor, "cpu") if obs_stats is None else module.mean_policy(actor, obs_stats, "cpu")
