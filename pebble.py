@@ -196,12 +196,12 @@ class MetaWorldSeeding(gym.Wrapper):
 
 
 def env_kind(env_id):
+    if env_id in gym.registry:
+        return "gym"
     with warnings.catch_warnings(action="ignore"):
         from dm_control import suite
     if tuple(env_id.split("-", 1)) in suite.ALL_TASKS:
         return "dmc"
-    if env_id in gym.registry:
-        return "gym"
     import metaworld
 
     if f"{env_id.removesuffix('-v3')}-v3" in metaworld.ALL_V3_ENVIRONMENTS:
