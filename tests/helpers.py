@@ -3,6 +3,7 @@
 import atexit
 import contextlib
 import csv
+import io
 import json
 import multiprocessing
 import multiprocessing.forkserver
@@ -51,9 +52,20 @@ FORK_SERVER = multiprocessing.get_context("forkserver")
 FORK_SERVER.set_forkserver_preload(PRELOAD)
 
 
-def run_as_main(cmd: list[str], stdout: str, stderr: str):
-    """In the forked child: `python SCRIPT FLAGS` (cmd), its output to the two files, its exit code as the
-    interpreter's (SystemExit's code; 1 and the traceback for an exception)."""
+def forked(target, *args) -> multiprocessing.Process:
+    """target(*args), started in a child of the fork server (which starts once, with the scripts' environment)."""
+    with mock.patch.dict(os.environ, ENV):
+        multiprocessing.forkserver.ensure_running()
+    process = FORK_SERVER.Process(target=target, args=args)
+    process.start()
+    return process
+
+
+def run_as_main(cmd: list[str], stdout: str, stderr: str, before=None):
+    """In the forked child: before() if given (as Popen's preexec_fn), then `python SCRIPT FLAGS` (cmd), its output
+    to the two files, its exit code as the interpreter's (SystemExit's code; 1 and the traceback for an exception)."""
+    if before:
+        before()
     for fd, path in ((1, stdout), (2, stderr)):
         os.dup2(os.open(path, os.O_WRONLY), fd)
     os.chdir(ROOT)
@@ -72,13 +84,10 @@ class ForkedRun:
     """`subprocess.Popen(cmd, stdout=PIPE, stderr=PIPE, text=True, env=ENV, cwd=ROOT)` as the tests use it (pid, poll,
     send_signal, kill, wait, communicate, returncode), for a script forked from the fork server."""
 
-    def __init__(self, cmd: list[str]):
+    def __init__(self, cmd: list[str], before=None):
         self.args = cmd
         self.files = [tempfile.mkstemp(prefix="run_")[1] for _ in ("stdout", "stderr")]
-        with mock.patch.dict(os.environ, ENV):  # the server starts (once) with the scripts' environment
-            multiprocessing.forkserver.ensure_running()
-        self.process = FORK_SERVER.Process(target=run_as_main, args=(cmd, *self.files))
-        self.process.start()
+        self.process = forked(run_as_main, cmd, *self.files, before)
         self.pid = self.process.pid
         self.returncode = None
 
@@ -108,42 +117,44 @@ class ForkedRun:
         return output[0], output[1]
 
 
-# Runs each command line of argv (a JSON list) through the script's __main__, as `python SCRIPT ARGS` does,
-# and prints (exit code, stdout, stderr) per command line as JSON: the exit code as the interpreter gives it
-# (SystemExit's code, 1 and the message or the traceback otherwise)
-ONE_INTERPRETER = """
-import contextlib, io, json, runpy, sys, traceback
-script, argvs = sys.argv[1], json.loads(sys.argv[2])
-results = []
-for argv in argvs:
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        sys.argv = [script, *argv]
-        try:
-            runpy.run_path(script, run_name="__main__")
-            code = 0
-        except SystemExit as end:
-            code = 0 if end.code is None else end.code
-            if not isinstance(code, int):  # sys.exit("message")
-                print(code, file=sys.stderr)
+def run_each(script: str, argvs: list[list[str]], results: str):
+    """In the forked child: each command line of argvs through the script's __main__, one after another, as
+    `python SCRIPT ARGS` runs it; (exit code, stdout, stderr) of each to the file results as JSON, the exit code as
+    the interpreter gives it (SystemExit's code; 1 and the message or the traceback otherwise)."""
+    os.chdir(ROOT)
+    sys.path.insert(0, str(Path(script).parent))
+    outcomes = []
+    for argv in argvs:
+        stdout, stderr = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            sys.argv = [script, *argv]
+            try:
+                runpy.run_path(script, run_name="__main__")
+                code = 0
+            except SystemExit as end:
+                code = 0 if end.code is None else end.code
+                if not isinstance(code, int):  # sys.exit("message")
+                    print(code, file=sys.stderr)
+                    code = 1
+            except BaseException:
+                traceback.print_exc()
                 code = 1
-        except BaseException:
-            traceback.print_exc()
-            code = 1
-    results.append([code, stdout.getvalue(), stderr.getvalue()])
-print(json.dumps(results))
-"""
+        outcomes.append([code, stdout.getvalue(), stderr.getvalue()])
+    Path(results).write_text(json.dumps(outcomes))
 
 
 def run_in_one_interpreter(script: str, runs: list[tuple[Path, list[str]]]) -> list[subprocess.CompletedProcess]:
     """Command lines that must end before any work (a user's mistakes), each `script --output-dir OUT FLAGS`, run
-    one after another in one Python process so that torch is imported once, not once per command line."""
+    one after another in one process forked from the fork server (torch imported once, not once per command line)."""
     argvs = [["--output-dir", str(out), *flags] for out, flags in runs]
-    cmd = [sys.executable, "-c", ONE_INTERPRETER, str(ROOT / script), json.dumps(argvs)]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, cwd=ROOT)
-    assert done.returncode == 0, done.stderr[-3000:]
+    results = tempfile.mkstemp(prefix="runs_")[1]
+    process = forked(run_each, str(ROOT / script), argvs, results)
+    process.join(600)
+    assert process.exitcode == 0, f"the forked runs ended with {process.exitcode}"
+    outcomes = json.loads(Path(results).read_text())
+    os.remove(results)
     return [subprocess.CompletedProcess(argv, code, stdout, stderr)
-            for argv, (code, stdout, stderr) in zip(argvs, json.loads(done.stdout))]
+            for argv, (code, stdout, stderr) in zip(argvs, outcomes)]
 
 
 def scalars(out: Path) -> dict[str, list[tuple[int, float]]]:
@@ -219,14 +230,10 @@ def assert_refused_by_tyro(result, message: str, out: Path):
     assert not out.exists()
 
 
-def start_script(script: str, out: Path, *flags: str, **popen_kwargs) -> "ForkedRun | subprocess.Popen":
-    """A run in the background, to be killed or signalled: forked (ForkedRun), or with popen_kwargs a new
-    interpreter."""
-    cmd = [sys.executable, str(ROOT / script), "--output-dir", str(out), *flags]
-    if popen_kwargs:
-        return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT,
-                                **popen_kwargs)
-    return ForkedRun(cmd)
+def start_script(script: str, out: Path, *flags: str, before=None) -> ForkedRun:
+    """A run in the background, to be killed or signalled; before() runs first in its process (Popen's
+    preexec_fn)."""
+    return ForkedRun([sys.executable, str(ROOT / script), "--output-dir", str(out), *flags], before)
 
 
 def wait_for(path: Path, process: subprocess.Popen, timeout: float = 300):

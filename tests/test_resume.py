@@ -292,7 +292,7 @@ FIRST_CHECKPOINT = {"pebble.py": ["--eval-every", "200", "--checkpoint-every", "
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_path):
     out = tmp_path / "run"
-    process = start_script(script, out, *RUNS[script], *FIRST_CHECKPOINT[script], preexec_fn=limit_file_size)
+    process = start_script(script, out, *RUNS[script], *FIRST_CHECKPOINT[script], before=limit_file_size)
     stdout, stderr = process.communicate(timeout=300)
     assert process.returncode == 3 and "Traceback" not in stderr
     lines = stderr.strip().splitlines()
