@@ -609,7 +609,7 @@ def evaluate(policy, reward_model, env, seeds, device):
             true_rewards.append(reward)
     correlation = math.nan
     if reward_model is not None:
-        with torch.no_grad():  # r_hat of every evaluated step, in one batch
+        with torch.no_grad():
             learned = reward_model(torch.stack(obs_actions)).mean(0).flatten().cpu().numpy()
         if min(np.std(learned), np.std(true_rewards)) > 0:
             correlation = float(np.corrcoef(learned, true_rewards)[0, 1])

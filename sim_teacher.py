@@ -368,7 +368,7 @@ class HumanTeacher:
         handlers = {signum: signal.signal(signum, stop) for signum in (signal.SIGTERM, signal.SIGINT)}
         answers = {}
         while len(answers) < n:
-            time.sleep(1)
+            time.sleep(0.2)
             try:
                 answers = read_answers(self.run_dir, self.session)["answers"]
             except (OSError, ValueError, KeyError):  # being written

@@ -47,6 +47,8 @@ def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(scri
              "--feedback-every", "200", "--max-feedback", "20", "--feedback-per-session", "10", "--segment-len", "10",
              "--eval-every", "700", "--hidden-dim", "32", "--batch-size", "32", "--reward-epochs", "3",
              "--reward-batch-size", "32", "--eval-episodes", "1", "--output-dir", str(out)]
+    if script == "rime.py":  # one warm-start update a pre-training step, not 5: cheaper
+        flags += ["--rime-warm-updates", "1"]
     result = run_cli(EDIT_SCRIPT, "raw-reward-inputs", "--", script, *flags)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.count("reward model trained on") == 2

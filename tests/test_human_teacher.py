@@ -69,7 +69,7 @@ def test_a_person_s_answers_are_the_labels_the_run_learns_from(script, tmp_path)
             wait_for_file(out / "queries" / f"session_{session:04d}.npz", process)
             queries.append(dict(np.load(out / "queries" / f"session_{session:04d}.npz")))
             assert process.poll() is None  # it waits for the person
-            time.sleep(1.5)
+            time.sleep(0.5)  # a few of its polls (every 0.2 s)
             assert not (out / "labels" / f"session_{session:04d}.npz").exists()
             answer(out, session, {str(i): a for i, a in enumerate(ANSWERS if session == 0 else ANSWERS[::-1])})
         stdout, stderr = process.communicate(timeout=300)
@@ -99,7 +99,7 @@ def test_a_run_stopped_while_it_waits_resumes_the_session_with_the_answers_given
         wait_for_file(out / "queries" / "session_0000.npz", process)
         first = dict(np.load(out / "queries" / "session_0000.npz"))
         answer(out, 0, {"0": "right", "1": "left"})  # half of them, then the person stops the run
-        time.sleep(1.5)
+        time.sleep(0.5)
         process.send_signal(signal.SIGTERM)
         stdout, stderr = process.communicate(timeout=60)
     finally:
