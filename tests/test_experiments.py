@@ -323,7 +323,7 @@ def synthetic(tmp_path_factory):
     for seed in (1, 2):
         write_run(root, f"cheetah_oracle_{seed}", "cheetah-run", seed, 300)
     (root / "grid.json").write_text(json.dumps({"runs": {"walker_oracle_7": {"command": [], "exit_code": None}}}))
-    result = run_report(root, "--reps", "2000", "--alignment-runs", "0")
+    result = run_report(root, "--reps", "200", "--alignment-runs", "0")
     assert result.returncode == 0, result.stderr[-3000:]
     return root, result
 

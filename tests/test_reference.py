@@ -395,7 +395,7 @@ def write_run(root, name, seed, curve, implementation="ours", extra=None, steps=
 
 def parity_report(root, target) -> None:
     """report.py ROOT --parity TARGET, as a user runs it; it must succeed."""
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200",
                              "--alignment-runs", "0", "--parity", str(target)], capture_output=True, text=True,
                             env=ENV, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
@@ -461,7 +461,7 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     for seed, final in enumerate([100, 110, 120], 1):
         write_run(root, f"pebble_{seed}", seed, [60, final])
     write_run(root, "rime_oracle_1", 1, [50, 900], extra={"rime_alpha": 0.5, "max_feedback": 500})  # no twin
-    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000",
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200",
                              "--alignment-runs", "0", "--compare", "rime", "pebble"], capture_output=True, text=True,
                             env=ENV, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
@@ -489,7 +489,7 @@ def test_report_sets_each_preference_setting_beside_its_algorithm_s_ground_truth
                   success=(0, rate))
     write_run(root, "rime_1", 1, [50, 300], extra=button | {"rime_alpha": 0.5})  # no rime.py run on the true reward
     write_run(root, "walker_1", 1, [50, 300])  # no run on the true reward on walker-walk
-    command = [sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "2000", "--alignment-runs",
+    command = [sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200", "--alignment-runs",
                "0", "--against-ground-truth"]
     result = subprocess.run(command, capture_output=True, text=True, env=ENV, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
