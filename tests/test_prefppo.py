@@ -437,9 +437,9 @@ TEACHER_RUNS = {
 
 @pytest.fixture(scope="module")
 def teacher_runs(tmp_path_factory):
-    """name -> (output dir, result) of each of TEACHER_RUNS, and "again": the oracle's run repeated."""
+    """name -> (output dir, result) of each of TEACHER_RUNS (a repeated run gives the same run: test_resume.py)."""
     runs = {}
-    for name, flags in [*TEACHER_RUNS.items(), ("again", TEACHER_RUNS["oracle"])]:
+    for name, flags in TEACHER_RUNS.items():
         out = tmp_path_factory.mktemp("teachers") / name
         runs[name] = out, run_prefppo(out, *PENDULUM, *flags)
     return runs
@@ -515,13 +515,11 @@ def test_no_use_sde_trains_a_state_independent_std_with_the_compiled_loss(tmp_pa
     assert log_std.shape == (1,) and log_std.any()  # Pendulum's one action; trained away from its initial 0
 
 
-def test_same_seed_gives_the_same_run_on_cpu_and_no_bootstrap_time_limits_another(tmp_path, teacher_runs):
-    (first, result), (second, again) = teacher_runs["oracle"], teacher_runs["again"]
+def test_no_bootstrap_time_limits_gives_another_run(tmp_path, teacher_runs):
+    first, result = teacher_runs["oracle"]
     # Pendulum ends every episode by its time limit: the reference's terminal ends change the updates
     terminal = run_edited("no-bootstrap-time-limits", tmp_path / "c", *PENDULUM)
-    assert result.returncode == again.returncode == terminal.returncode == 0, terminal.stderr[-3000:]
-    assert eval_curve(first) == eval_curve(second)
-    assert [s["y"].tolist() for s in saved_labels(first)] == [s["y"].tolist() for s in saved_labels(second)]
+    assert result.returncode == terminal.returncode == 0, terminal.stderr[-3000:]
     assert eval_curve(tmp_path / "c") != eval_curve(first)
 
 
