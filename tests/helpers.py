@@ -140,6 +140,7 @@ def run_each(script: str, argvs: list[list[str]], results: str):
                 traceback.print_exc()
                 code = 1
         outcomes.append([code, stdout.getvalue(), stderr.getvalue()])
+    atexit._run_exitfuncs()  # as the interpreter would at its end
     Path(results).write_text(json.dumps(outcomes))
 
 
