@@ -121,6 +121,8 @@ CPU_METAWORLD = ("--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --bat
 # sweep-into: the pilot's SAC succeeds at every evaluation from 110K steps on (docs/results.md), so 150K steps;
 # the same sessions of 50 every 4950 steps from step 10,001, 28 of them (1400 labels) as button-press's 18 in 100K
 CPU_SWEEP_INTO = CPU_METAWORLD.replace("--total-timesteps 100000", "--total-timesteps 150000")
+# sweep-into longer: PEBBLE barely learns by 150K (docs/results.md); 250K steps, 48 sessions of 50 (2400 labels)
+CPU_SWEEP_INTO_250K = CPU_METAWORLD.replace("--total-timesteps 100000", "--total-timesteps 250000")
 # quadruped-walk: the pilots' 250K steps (2-2.7 h a run on a core here); 10 sessions of 100 every 24K from 10,001
 CPU_QUADRUPED = CPU_PILOT + " --feedback-every 24000"
 PRESETS = {
@@ -147,6 +149,11 @@ PRESETS = {
         "150K steps, 256 x 2, batch 256, 3 seeds",
         Grid(env_ids=("sweep-into",), teachers=("oracle",), budgets=("1400/50",), root="runs/sweep-into",
              flags=CPU_SWEEP_INTO)),
+    "sweep-into-cpu-250k": (
+        "PEBBLE (oracle, 2400 labels in sessions of 50 every 4950 steps) and SAC on the true reward, sweep-into, "
+        "250K steps, 256 x 2, batch 256, 3 seeds",
+        Grid(env_ids=("sweep-into",), teachers=("oracle",), budgets=("2400/50",), root="runs/sweep-into-250k",
+             flags=CPU_SWEEP_INTO_250K)),
     "quadruped-walk-cpu": (
         "PEBBLE (oracle, 1000 labels in sessions of 100 every 24K steps) and SAC on the true reward, quadruped-walk, "
         "250K steps, 256 x 2, batch 256, 3 seeds",

@@ -473,7 +473,7 @@ def test_the_card_commands_projection_adds_its_phases_as_measured_by_hand():
     assert np.isnan(card_speed.projection(rows[:2], config)[1])  # no block of SAC alone yet: no projection
 
 
-@pytest.mark.parametrize("preset", ["button-press-cpu", "sweep-into-cpu"])
+@pytest.mark.parametrize("preset", ["button-press-cpu", "sweep-into-cpu", "sweep-into-cpu-250k"])
 def test_metaworld_cpu_presets_keep_the_papers_sessions_and_spend_their_budget(preset, monkeypatch):
     runs = grid.expand(grid.PRESETS[preset][1])
     assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
@@ -486,7 +486,7 @@ def test_metaworld_cpu_presets_keep_the_papers_sessions_and_spend_their_budget(p
     sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps - 1,
                            args.total_timesteps)
     spent = planned_labels(sizes, first, args.feedback_every, args.total_timesteps)
-    assert spent == args.max_feedback == {100_000: 900, 150_000: 1400}[args.total_timesteps]
+    assert spent == args.max_feedback == {100_000: 900, 150_000: 1400, 250_000: 2400}[args.total_timesteps]
 
 
 def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_steps(monkeypatch):
