@@ -159,6 +159,11 @@ PRESETS = {
         "250K steps, 256 x 2, batch 256, 3 seeds",
         Grid(env_ids=("quadruped-walk",), teachers=("oracle",), budgets=("1000/100",), root="runs/quadruped-walk",
              flags=CPU_QUADRUPED)),
+    "quadruped-walk-myopic-cpu": (
+        "PEBBLE with the myopic teacher (the README's first command's) as quadruped-walk-cpu, in its root so that one "
+        "report compares it with that preset's SAC runs, 3 seeds",
+        Grid(env_ids=("quadruped-walk",), teachers=("myopic",), budgets=("1000/100",), ground_truth=False,
+             root="runs/quadruped-walk", flags=CPU_QUADRUPED)),
     # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
     "parity-pebble": (
         "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",

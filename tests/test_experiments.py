@@ -502,3 +502,7 @@ def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_
                            args.total_timesteps)
     assert list(sizes) == [100] * 10 and steps[-1] == 10_001 + 9 * 24_000 < args.total_timesteps == 250_000
     assert planned_labels(sizes, first, args.feedback_every, args.total_timesteps) == 1000
+    myopic = grid.expand(grid.PRESETS["quadruped-walk-myopic-cpu"][1])
+    oracle = {r.name.replace("oracle", "myopic"): r.flags for r in runs if "--teacher" in r.flags}
+    assert {r.name: r.flags for r in myopic} == {
+        name: tuple(word.replace("oracle", "myopic") for word in flags) for name, flags in oracle.items()}
