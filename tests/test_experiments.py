@@ -506,3 +506,63 @@ def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_
     oracle = {r.name.replace("oracle", "myopic"): r.flags for r in runs if "--teacher" in r.flags}
     assert {r.name: r.flags for r in myopic} == {
         name: tuple(word.replace("oracle", "myopic") for word in flags) for name, flags in oracle.items()}
+
+
+# ---------------------------------------------------------------- reward_check.py: r_hat on an expert's episodes
+
+
+def reward_check(*args) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "experiments" / "reward_check.py"), *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, cwd=ROOT)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algorithm", ["pebble", "prefppo"])
+def test_reward_check_replays_the_last_evaluation_and_ranks_the_expert_s_episodes(local_grid, tmp_path, algorithm):
+    """The own policy's episodes are the run's last evaluation, number for number (its return and r_hat's
+    correlation); the ranking line counts the seeds on which each reward puts the expert's episode first."""
+    root, _ = local_grid
+    run, expert = root / f"{algorithm}__Hopper-v5__oracle__fb20-10__disagreement__uniform__s1", root / (
+        f"{algorithm}__Hopper-v5__ground-truth__s2")
+    table = tmp_path / "episodes.csv"
+    result = reward_check(run, "--expert", expert, "--csv", table)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = read_csv(table)
+    last = grid.read_eval(run)[-1]
+    own = [row for row in rows if row["policy"] == "own policy"]
+    assert len(own) == 1 and float(own[0]["true_return"]) == pytest.approx(last["episode_return"], rel=1e-9)
+    own_line = next(line for line in result.stdout.splitlines() if line.startswith("| own policy |"))
+    assert own_line.split("|")[5].strip() == f"{last['reward_correlation']:.3f}"
+    experts = [row for row in rows if row["policy"] == "expert run"]
+    by_learned = sum(float(e["learned_return"]) > float(o["learned_return"]) for e, o in zip(experts, own))
+    by_true = sum(float(e["true_return"]) > float(o["true_return"]) for e, o in zip(experts, own))
+    assert f"by the learned reward in {by_learned} of 1, by the true reward in {by_true} of 1" in result.stdout
+    assert {row["policy"] for row in rows} == {"own policy", "expert run", "random policy"}
+    refused = [reward_check(run), reward_check(run, "--expert", root / "pebble__walker-walk__nothing"),
+               reward_check(run, "--episodes", 2), reward_check(root / "logs")]
+    messages = ["no scripted policy for 'Hopper-v5' (Meta-World's only): give --expert RUN", "is not a run's folder",
+                "--episodes must be in [0, 1]", "is not a run's folder"]
+    for result, message in zip(refused, messages):
+        assert result.returncode == 2 and result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
+
+
+def test_reward_check_s_scripted_expert_sees_the_goal_that_the_agent_s_observations_hide(tmp_path):
+    """Meta-World's scripted sweep-into policy moves the cube to the goal it reads from the observation: it succeeds
+    on the run's evaluation seed although the agent's own episode (goal hidden) was played first, and r_hat is fed
+    the hidden-goal observations it was trained on."""
+    run = tmp_path / "sweep-into-run"
+    run.mkdir()
+    args = pebble.Args(env_id="sweep-into", hidden_dim=16, num_layers=1, eval_episodes=1, total_timesteps=20000,
+                       output_dir=str(run))
+    (run / "config.json").write_text(json.dumps(vars(args)))
+    (run / "eval.csv").write_text("step,episode_return,episode_return_std,success_rate,reward_correlation,feedback,"
+                                  "wall_time\n20000,0.0,0.0,0.0,0.0,0,1.0\n")
+    torch.manual_seed(0)
+    networks = {"actor": pebble.Actor(39, 4, 16, 1), "critic": pebble.TwinCritic(39, 4, 16, 1),
+                "reward_model": pebble.RewardEnsemble(39, 4, 3)}
+    torch.save({name: network.state_dict() for name, network in networks.items()}, run / "final_model.pt")
+    result = reward_check(run, "--csv", tmp_path / "episodes.csv")
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = {row["policy"]: row for row in read_csv(tmp_path / "episodes.csv")}
+    assert rows["scripted expert"]["success"] == "1" and rows["own policy"]["success"] == "0"
+    assert float(rows["scripted expert"]["true_return"]) > 10 * float(rows["random policy"]["true_return"])
