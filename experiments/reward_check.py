@@ -4,9 +4,9 @@ A reward model can agree with the teacher on the segments it was taught on (the 
 rank other behaviour wrongly; the agent then settles where r_hat is high and the true reward is not. This plays the
 reset seeds of the run's last evaluation with three policies: the run's own final policy, an expert (Meta-World's
 scripted policy for the task, or the final policy of another run, such as SAC on the true reward) and a uniformly
-random one; and prints, for each, the true return, the success rate, the learned return (r_hat's ensemble mean
-summed over the episode, from final_model.pt) and r_hat's per-step correlation with the true reward. Docs:
-docs/experiments.md
+random one; and prints, for each, the true return, the success rate (Meta-World), the learned return (r_hat's
+ensemble mean summed over the episode, from final_model.pt) and r_hat's per-step correlation with the true reward.
+Docs: docs/experiments.md
 
     python experiments/reward_check.py runs/sweep-into/pebble__sweep-into__oracle__fb1400-50__disagreement__uniform__s2
     python experiments/reward_check.py RUN --expert runs/grid/pebble__walker-walk__ground-truth__s1   # any task
@@ -23,7 +23,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from report import find_runs, final_evaluation_seeds, load_final_model  # noqa: E402
+from report import find_runs, final_evaluation_seeds, is_metaworld, load_final_model  # noqa: E402
 
 
 @dataclass
@@ -155,14 +155,16 @@ def check(args: Args) -> list[str]:
     for name, episodes in played.items():
         true = np.array([e["true"].sum() for e in episodes])
         learned = np.array([e["learned"].sum() for e in episodes])
-        successes = np.mean([e["success"] for e in episodes])
-        lines.append(f"| {name} | {true.mean():.1f} ± {true.std():.1f} | {successes:.2f} | "
+        successes = f"{np.mean([e['success'] for e in episodes]):.2f}" if is_metaworld(env_id) else "-"
+        lines.append(f"| {name} | {true.mean():.1f} ± {true.std():.1f} | {successes} | "
                      f"{learned.mean():.1f} ± {learned.std():.1f} | {correlation(episodes):.3f} |")
     pairs = list(zip(played[expert_name], played["own policy"]))
     by_learned = sum(e["learned"].sum() > o["learned"].sum() for e, o in pairs)
     by_true = sum(e["true"].sum() > o["true"].sum() for e, o in pairs)
+    agree = sum((e["learned"].sum() > o["learned"].sum()) == (e["true"].sum() > o["true"].sum()) for e, o in pairs)
     lines += ["", f"the {expert_name}'s episode above the own policy's on the same seed: by the learned reward in "
-                  f"{by_learned} of {len(pairs)}, by the true reward in {by_true} of {len(pairs)}"]
+                  f"{by_learned} of {len(pairs)}, by the true reward in {by_true} of {len(pairs)}; the two agree on "
+                  f"{agree} of {len(pairs)}"]
     return lines
 
 
