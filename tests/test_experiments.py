@@ -18,7 +18,7 @@ import pebble
 import prefppo
 import report
 from samplers import planned_labels, schedule_sizes, session_steps
-from tests.helpers import ENV, ROOT, eval_curve, wait_for
+from tests.helpers import ENV, ROOT, eval_curve, run_cli, wait_for
 
 # Hopper-v5: positive returns (a ground-truth baseline that can normalise) and short random episodes. pebble: sessions
 # at steps 101 and 151, evaluations at 100 and 200; prefppo: rollouts of 100, sessions at 100 and 200, 3 evaluations
@@ -512,8 +512,7 @@ def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_
 
 
 def reward_check(*args) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(ROOT / "experiments" / "reward_check.py"), *map(str, args)]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, cwd=ROOT)
+    return run_cli("experiments/reward_check.py", *map(str, args))
 
 
 @pytest.mark.slow
