@@ -550,7 +550,8 @@ def test_reward_check_replays_the_last_evaluation_and_ranks_the_expert_s_episode
 def test_reward_check_s_scripted_expert_sees_the_goal_that_the_agent_s_observations_hide(tmp_path):
     """Meta-World's scripted sweep-into policy moves the cube to the goal it reads from the observation: it succeeds
     on the run's evaluation seed although the agent's own episode (goal hidden) was played first, and r_hat is fed
-    the hidden-goal observations it was trained on."""
+    the hidden-goal observations it was trained on (a reward model that reads only the goal's entries gives every
+    episode the same learned return)."""
     run = tmp_path / "sweep-into-run"
     run.mkdir()
     args = pebble.Args(env_id="sweep-into", hidden_dim=16, num_layers=1, eval_episodes=1, total_timesteps=20000,
@@ -561,9 +562,14 @@ def test_reward_check_s_scripted_expert_sees_the_goal_that_the_agent_s_observati
     torch.manual_seed(0)
     networks = {"actor": pebble.Actor(39, 4, 16, 1), "critic": pebble.TwinCritic(39, 4, 16, 1),
                 "reward_model": pebble.RewardEnsemble(39, 4, 3)}
+    with torch.no_grad():
+        for member in networks["reward_model"].members:
+            member[0][0].weight[:, :36] = 0  # the first layer reads the goal's entries (36-38) only
+            member[0][0].weight[:, 39:] = 0
     torch.save({name: network.state_dict() for name, network in networks.items()}, run / "final_model.pt")
     result = reward_check(run, "--csv", tmp_path / "episodes.csv")
     assert result.returncode == 0, result.stderr[-3000:]
     rows = {row["policy"]: row for row in read_csv(tmp_path / "episodes.csv")}
     assert rows["scripted expert"]["success"] == "1" and rows["own policy"]["success"] == "0"
     assert float(rows["scripted expert"]["true_return"]) > 10 * float(rows["random policy"]["true_return"])
+    assert rows["scripted expert"]["learned_return"] == rows["own policy"]["learned_return"]
