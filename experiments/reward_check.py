@@ -123,6 +123,8 @@ def correlation(episodes: list[dict]) -> float:
 def check(args: Args) -> list[str]:
     """The table's lines (Markdown) and the ranking line."""
     run, module, env, actor, reward_model, obs_stats = load_run(args.run)
+    if run.is_ground_truth:
+        raise CheckError(f"{args.run!r} learned from the true reward: it has no learned reward to check")
     seeds = final_evaluation_seeds(module, run)
     if not 0 <= args.episodes <= len(seeds):
         raise CheckError(f"--episodes must be in [0, {len(seeds)}] (the run's evaluation episodes)")
@@ -131,10 +133,11 @@ def check(args: Args) -> list[str]:
     if args.expert == "scripted":
         expert, expert_name, sees_goal = scripted_policy(env_id), "scripted expert", True
     else:
-        expert_run, _, _, expert_actor, _, expert_stats = load_run(args.expert)
+        expert_run, expert_module, expert_env, expert_actor, _, expert_stats = load_run(args.expert)
+        expert_env.close()
         if expert_run.config["env_id"] != env_id:
             raise CheckError(f"--expert {args.expert!r} ran {expert_run.config['env_id']}, the run {env_id}")
-        expert, expert_name, sees_goal = actor_policy(module, expert_actor, expert_stats), "expert run", False
+        expert, expert_name, sees_goal = actor_policy(expert_module, expert_actor, expert_stats), "expert run", False
     rng = np.random.default_rng(args.seed)
     low, high = env.action_space.low, env.action_space.high
     policies = {"own policy": (actor_policy(module, actor, obs_stats), False), expert_name: (expert, sees_goal),

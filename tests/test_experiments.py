@@ -516,13 +516,15 @@ def reward_check(*args) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algorithm", ["pebble", "prefppo"])
-def test_reward_check_replays_the_last_evaluation_and_ranks_the_expert_s_episodes(local_grid, tmp_path, algorithm):
+@pytest.mark.parametrize("algorithm, expert", [("pebble", "prefppo"), ("prefppo", "pebble")])
+def test_reward_check_replays_the_last_evaluation_and_ranks_the_expert_s_episodes(local_grid, tmp_path, algorithm,
+                                                                                    expert):
     """The own policy's episodes are the run's last evaluation, number for number (its return and r_hat's
-    correlation); the ranking line counts the seeds on which each reward puts the expert's episode first."""
+    correlation); the ranking line counts the seeds on which each reward puts the expert's episode first. The
+    expert may be a run of the other script (its own policy code plays it)."""
     root, _ = local_grid
-    run, expert = root / f"{algorithm}__Hopper-v5__oracle__fb20-10__disagreement__uniform__s1", root / (
-        f"{algorithm}__Hopper-v5__ground-truth__s2")
+    run = root / f"{algorithm}__Hopper-v5__oracle__fb20-10__disagreement__uniform__s1"
+    expert = root / f"{expert}__Hopper-v5__ground-truth__s2"
     table = tmp_path / "episodes.csv"
     result = reward_check(run, "--expert", expert, "--csv", table)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -540,9 +542,9 @@ def test_reward_check_replays_the_last_evaluation_and_ranks_the_expert_s_episode
             f"{agree} of 1") in result.stdout
     assert {row["policy"] for row in rows} == {"own policy", "expert run", "random policy"}
     refused = [reward_check(run), reward_check(run, "--expert", root / "pebble__walker-walk__nothing"),
-               reward_check(run, "--episodes", 2), reward_check(root / "logs")]
+               reward_check(run, "--episodes", 2), reward_check(root / "logs"), reward_check(expert)]
     messages = ["no scripted policy for 'Hopper-v5' (Meta-World's only): give --expert RUN", "is not a run's folder",
-                "--episodes must be in [0, 1]", "is not a run's folder"]
+                "--episodes must be in [0, 1]", "is not a run's folder", "learned from the true reward"]
     for result, message in zip(refused, messages):
         assert result.returncode == 2 and result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
 
