@@ -2,21 +2,24 @@
 paper Section 4.2 and appendix "Sampling schemes". Arrays in, arrays out: no torch, no environment.
 
     e0, s0, e1, s1 = random_pairs(episode_lengths, segment_len=50, n_pairs=1000, rng=rng)
-    candidates = draw_segments(episodes, segment_len=50, n_pairs=1000, rng=rng)  # episodes: (obs, actions, rewards)
+    # episodes: a list of (obs, actions, rewards) tuples
+    candidates = draw_segments(episodes, segment_len=50, n_pairs=1000, rng=rng)
     chosen = select("disagreement", 100, probs=probs)  # probs (E, M): member i's P[sigma1 > sigma0]
     steps = session_steps(first_step=10_001, every=20_000, last_step=500_000)
-    sizes = schedule_sizes("decay", budget=1000, per_session=100, steps=steps - 1, total_steps=500_000)
+    sizes = schedule_sizes("decay", budget=1000, per_session=100, steps=steps - 1,
+                           total_steps=500_000)
     labels = planned_labels(sizes, first_step=10_001, every=20_000, last_step=500_000)
 """
 
 import numpy as np
 
-SAMPLERS = ("uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage")
+SAMPLERS = ("uniform", "disagreement", "entropy", "coverage", "disagreement-coverage",
+            "entropy-coverage")
 SCHEDULES = ("uniform", "decay", "increase")
 
 
 def disagreement_scores(probs: np.ndarray) -> np.ndarray:
-    """Ensemble disagreement: the standard deviation over members of P[sigma1 > sigma0], shape (M,)."""
+    """Ensemble disagreement: the members' standard deviation of P[sigma1 > sigma0], shape (M,)."""
     return probs.std(axis=0)
 
 
@@ -31,7 +34,10 @@ def entropy_scores(probs: np.ndarray) -> np.ndarray:
 
 
 def k_center_greedy(
-    features: np.ndarray, n_query: int, labeled_features: np.ndarray | None, rng: np.random.Generator
+    features: np.ndarray,
+    n_query: int,
+    labeled_features: np.ndarray | None,
+    rng: np.random.Generator,
 ) -> np.ndarray:
     """Greedy k-center (Gonzalez): repeatedly pick the candidate farthest from its nearest center.
 
@@ -47,11 +53,15 @@ def k_center_greedy(
         centers = (labeled_features - offset).astype(dtype)
         for start in range(0, len(centers), 1024):  # ||a - b||^2 = |a|^2 + |b|^2 - 2ab, in chunks
             chunk = centers[start : start + 1024]
-            squared = squared_norms[:, None] + np.einsum("kd,kd->k", chunk, chunk)[None] - 2 * features @ chunk.T
+            chunk_norms = np.einsum("kd,kd->k", chunk, chunk)
+            squared = squared_norms[:, None] + chunk_norms[None] - 2 * features @ chunk.T
             nearest = np.minimum(nearest, squared.min(axis=1))
     chosen = np.empty(n_query, dtype=np.int64)
     for i in range(n_query):
-        pick = int(np.argmax(nearest)) if np.isfinite(nearest).any() else int(rng.integers(len(features)))
+        if np.isfinite(nearest).any():
+            pick = int(np.argmax(nearest))
+        else:
+            pick = int(rng.integers(len(features)))
         chosen[i] = pick
         squared = squared_norms + squared_norms[pick] - 2 * features @ features[pick]
         nearest = np.minimum(nearest, squared)
@@ -80,11 +90,13 @@ def select(
     features: (M, D), both segments' states concatenated (coverage and hybrids, appendix).
     labeled_features: (K, D), queries labelled in earlier sessions: existing k-center centers.
     n_inter: hybrids keep the n_inter most uncertain candidates, then pick centers among them
-    (default max(n_query, M // 2)). rng: for uniform and the first coverage center (default: unseeded)."""
+    (default max(n_query, M // 2)).
+    rng: for uniform and the first coverage center (default: unseeded)."""
     if method not in SAMPLERS:
         raise ValueError(f"unknown sampler {method!r}: choose one of {', '.join(SAMPLERS)}")
     rng = np.random.default_rng() if rng is None else rng
-    uncertainty = {"disagreement": disagreement_scores, "entropy": entropy_scores}.get(method.split("-")[0])
+    uncertainties = {"disagreement": disagreement_scores, "entropy": entropy_scores}
+    uncertainty = uncertainties.get(method.split("-")[0])
     needs_coverage = method.endswith("coverage")
     if uncertainty is not None and probs is None:
         raise ValueError(f"sampler {method!r} needs probs, an (ensemble, candidates) array")
@@ -102,14 +114,16 @@ def select(
         raise ValueError(f"probs has {probs.shape[1]} candidates but features has {len(features)}")
     if labeled_features is not None:
         labeled_features = np.asarray(labeled_features)
-        if features is None or labeled_features.ndim != 2 or labeled_features.shape[1] != features.shape[1]:
-            raise ValueError("labeled_features must be 2-D with the feature dimension of features, got shape "
-                             f"{labeled_features.shape}")
+        shape = labeled_features.shape
+        if features is None or len(shape) != 2 or shape[1] != features.shape[1]:
+            raise ValueError("labeled_features must be 2-D with the feature dimension of features, "
+                             f"got shape {shape}")
     if probs is None and features is None:
         raise ValueError("select needs probs or features to know the candidates")
     n_candidates = probs.shape[1] if probs is not None else len(features)
     if not (1 <= n_query <= n_candidates):
-        raise ValueError(f"n_query must be in [1, {n_candidates}] (the number of candidates), got {n_query}")
+        raise ValueError(f"n_query must be in [1, {n_candidates}] (the number of candidates), "
+                         f"got {n_query}")
 
     if method == "uniform":
         return rng.choice(n_candidates, size=n_query, replace=False)
@@ -120,32 +134,37 @@ def select(
         return _top(scores, n_query)
     n_inter = max(n_query, n_candidates // 2) if n_inter is None else n_inter
     if not (n_query <= n_inter <= n_candidates):
-        raise ValueError(f"n_inter must be in [n_query, candidates] = [{n_query}, {n_candidates}], got {n_inter}")
+        raise ValueError(f"n_inter must be in [n_query, candidates] = [{n_query}, {n_candidates}], "
+                         f"got {n_inter}")
     most_uncertain = _top(scores, n_inter)
     return most_uncertain[k_center_greedy(features[most_uncertain], n_query, labeled_features, rng)]
 
 
-def schedule_sizes(name: str, budget: int, per_session: int, steps=None, total_steps: int | None = None) -> np.ndarray:
-    """Number of queries of each feedback session (paper Section 4.2), as the reference code's schedules (the runs of
-    the paper's Fig. 4): a session after t of T environment steps asks
+def schedule_sizes(
+    name: str, budget: int, per_session: int, steps=None, total_steps: int | None = None
+) -> np.ndarray:
+    """Number of queries of each feedback session (paper Section 4.2), as the reference code's
+    schedules (the runs of the paper's Fig. 4): a session after t of T environment steps asks
 
       uniform:  per_session
-      decay:    int(2 * per_session * (T - t) / T)       (the paper's T / (t + T) shape, linear in t)
+      decay:    int(2 * per_session * (T - t) / T)  (the paper's T / (t + T) shape, linear in t)
       increase: int(per_session / 2 * T / (T - t + 1))
 
-    (the reference's reward_batch x frac, with the 2x and 0.5x reward_batch of its walker scripts), at least 1 and
-    at most what is left of the budget, the last session taking the rest. `steps`: t of each planned session
-    (session_steps); decay and increase need them and total_steps T. Uniform spends exactly `budget`; decay and
-    increase spend it when the run has sessions enough, else what those sessions ask."""
+    (the reference's reward_batch x frac, with the 2x and 0.5x reward_batch of its walker scripts),
+    at least 1 and at most what is left of the budget, the last session taking the rest. `steps`:
+    t of each planned session (session_steps); decay and increase need them and total_steps T.
+    Uniform spends exactly `budget`; decay and increase spend it when the run has sessions enough,
+    else what those sessions ask."""
     if name not in SCHEDULES:
         raise ValueError(f"unknown schedule {name!r}: choose one of {', '.join(SCHEDULES)}")
     if budget < 1 or per_session < 1:
-        raise ValueError(f"budget and per_session must be >= 1, got budget={budget}, per_session={per_session}")
+        raise ValueError("budget and per_session must be >= 1, "
+                         f"got budget={budget}, per_session={per_session}")
     if per_session > budget:
         raise ValueError(f"per_session ({per_session}) cannot exceed budget ({budget})")
     if name == "uniform":
-        return np.array([per_session] * (budget // per_session) + ([budget % per_session] if budget % per_session
-                                                                  else []), dtype=np.int64)
+        rest = [budget % per_session] if budget % per_session else []
+        return np.array([per_session] * (budget // per_session) + rest, dtype=np.int64)
     if steps is None or total_steps is None:
         raise ValueError(f"schedule {name!r} needs the steps of the sessions and total_steps")
     sizes, remaining = [], budget
@@ -164,8 +183,9 @@ def schedule_sizes(name: str, budget: int, per_session: int, steps=None, total_s
 
 
 def session_steps(first_step: int, every: int, last_step: int, granularity: int = 1) -> np.ndarray:
-    """The steps of a run's feedback sessions: first_step, then `every` or more steps after the one before, each at
-    the next multiple of `granularity` steps (a rollout; 1: at any step), up to last_step."""
+    """The steps of a run's feedback sessions: first_step, then `every` or more steps after the one
+    before, each at the next multiple of `granularity` steps (a rollout; 1: at any step), up to
+    last_step."""
     steps, step = [], -(-first_step // granularity) * granularity
     while step <= last_step:
         steps.append(step)
@@ -173,9 +193,11 @@ def session_steps(first_step: int, every: int, last_step: int, granularity: int 
     return np.array(steps, dtype=np.int64)
 
 
-def planned_labels(session_sizes, first_step: int, every: int, last_step: int, granularity: int = 1) -> int:
-    """How many labels a run asks for: the sizes of the sessions that fit (session_steps), while the schedule lasts.
-    Assumes a complete episode at the first session (a later first session asks fewer)."""
+def planned_labels(
+    session_sizes, first_step: int, every: int, last_step: int, granularity: int = 1
+) -> int:
+    """How many labels a run asks for: the sizes of the sessions that fit (session_steps), while
+    the schedule lasts. Assumes a complete episode at the first session (a later one asks fewer)."""
     n_sessions = len(session_steps(first_step, every, last_step, granularity))
     return int(np.sum(session_sizes[:n_sessions]))
 
@@ -215,18 +237,23 @@ def random_pairs(
     return (*to_episode_start(first), *to_episode_start(second))
 
 
-def draw_segments(episodes, segment_len: int, n_pairs: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """n_pairs candidate pairs (random_pairs) cut from stored episodes, each a tuple whose first three entries are
-    per-step arrays (observations, actions, true rewards) of one length: {"obs0", "actions0", "rewards0", "obs1",
-    "actions1", "rewards1"}, each of shape (n_pairs, segment_len, ...), and where each segment was cut:
-    "episode0"/"episode1" (indices into `episodes`) and "start0"/"start1" (its first step there), each (n_pairs,);
-    side 0 is sigma0, side 1 sigma1."""
-    e0, s0, e1, s1 = random_pairs([len(episode[0]) for episode in episodes], segment_len, n_pairs, rng)
+def draw_segments(
+    episodes, segment_len: int, n_pairs: int, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
+    """n_pairs candidate pairs (random_pairs) cut from stored episodes, each a tuple whose first
+    three entries are per-step arrays (observations, actions, true rewards) of one length:
+    {"obs0", "actions0", "rewards0", "obs1", "actions1", "rewards1"}, each of shape
+    (n_pairs, segment_len, ...), and where each segment was cut: "episode0"/"episode1" (indices
+    into `episodes`) and "start0"/"start1" (its first step there), each (n_pairs,); side 0 is
+    sigma0, side 1 sigma1."""
+    lengths = [len(episode[0]) for episode in episodes]
+    e0, s0, e1, s1 = random_pairs(lengths, segment_len, n_pairs, rng)
     window = np.arange(segment_len)
     pairs = {}
     for side, (es, ss) in enumerate(((e0, s0), (e1, s1))):
         for part, key in enumerate(("obs", "actions", "rewards")):
-            pairs[f"{key}{side}"] = np.stack([episodes[e][part][s + window] for e, s in zip(es, ss)])
+            segments = [episodes[e][part][s + window] for e, s in zip(es, ss)]
+            pairs[f"{key}{side}"] = np.stack(segments)
         pairs[f"episode{side}"] = es
         pairs[f"start{side}"] = ss
     return pairs

@@ -36,7 +36,7 @@ class SimTeacher:
     (not in the paper; 0 changes nothing) to simulate a person whom fit_teacher.py finds leaning."""
 
     beta: float = math.inf
-    """rationality constant of Eq. (1): inf = perfectly rational and deterministic, 0 = uniformly random"""
+    """rationality constant of Eq. (1): inf = rational and deterministic, 0 = uniformly random"""
     gamma: float = 1.0
     """myopic discount of Eq. (1): step t of H weighs gamma^(H-t), so the last step weighs 1"""
     eps_mistake: float = 0.0
@@ -55,7 +55,7 @@ class SimTeacher:
 
     def __post_init__(self):
         if not (self.beta >= 0):  # also rejects NaN
-            raise ValueError(f"beta must be >= 0 (math.inf for a rational teacher), got {self.beta}")
+            raise ValueError(f"beta must be >= 0 (math.inf: a rational teacher), got {self.beta}")
         if not (0 < self.gamma <= 1):
             raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
         for name in ("eps_mistake", "eps_skip", "eps_equal"):
@@ -63,7 +63,8 @@ class SimTeacher:
             if not (0 <= value <= 1):
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
         if not (-1 <= self.bias <= 1):
-            raise ValueError(f"bias must be in [-1, 1] (a probability, signed by the side), got {self.bias}")
+            raise ValueError("bias must be in [-1, 1] (a probability, signed by the side), "
+                             f"got {self.bias}")
         self.rng = np.random.default_rng(self.seed)
 
     def set_thresholds(self, mean_return: float, segment_len: int, episode_len: int) -> None:
@@ -71,21 +72,21 @@ class SimTeacher:
         true return of the current policy's recent episodes. Call before every feedback session.
         Each threshold is eps times the scaled return (the reference code applied eps twice)."""
         if segment_len < 1 or episode_len < segment_len:
-            raise ValueError(
-                f"need 1 <= segment_len <= episode_len, got segment_len={segment_len}, episode_len={episode_len}"
-            )
+            raise ValueError("need 1 <= segment_len <= episode_len, "
+                             f"got segment_len={segment_len}, episode_len={episode_len}")
         if not math.isfinite(mean_return):
             raise ValueError(f"mean_return must be finite, got {mean_return}")
         scaled_return = segment_len / episode_len * mean_return
         self.delta_skip = self.eps_skip * scaled_return
-        # A difference threshold must be >= 0: on tasks with negative returns (not in the paper, whose
-        # rewards are >= 0) the equal threshold uses |R_avg|, so the Equal teacher still says "equal".
+        # A difference threshold must be >= 0: on tasks with negative returns (not in the paper,
+        # whose rewards are >= 0) the equal threshold uses |R_avg|, so Equal still says "equal".
         self.delta_equal = self.eps_equal * abs(scaled_return)
 
     def state_dict(self) -> dict:
-        """Plain data, as torch modules' state_dict: the fields, thresholds and the generator's state (what a
-        checkpoint saves; it loads with torch.load(..., weights_only=True))."""
-        names = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias", "delta_skip", "delta_equal")
+        """Plain data, as torch modules' state_dict: the fields, thresholds and the generator's
+        state (what a checkpoint saves; it loads with torch.load(..., weights_only=True))."""
+        names = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias", "delta_skip",
+                 "delta_equal")
         return {name: getattr(self, name) for name in names} | {"rng": self.rng.bit_generator.state}
 
     def load_state_dict(self, state: dict) -> None:
@@ -125,7 +126,7 @@ class SimTeacher:
         else:
             weights = self.gamma ** np.arange(rewards0.shape[1] - 1, -1, -1, dtype=np.float64)
             advantage = rewards1 @ weights - rewards0 @ weights
-        if math.isinf(self.beta):  # the beta -> inf limit: the better segment; an exact tie is a coin flip
+        if math.isinf(self.beta):  # beta -> inf: the better segment; an exact tie is a coin flip
             prob_second = 0.5 * (1.0 + np.sign(advantage))
         else:  # sigmoid(beta * advantage), written with tanh so that no exp overflows
             prob_second = 0.5 * (1.0 + np.tanh(0.5 * self.beta * advantage))
@@ -165,7 +166,8 @@ def make_teacher(name: str, seed: int | None = None, run_dir: str = "", episodes
     fields = {"beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias"}
     unknown = set(overrides) - fields
     if unknown:
-        raise ValueError(f"unknown teacher field(s) {sorted(unknown)}: choose from {sorted(fields)}")
+        raise ValueError(f"unknown teacher field(s) {sorted(unknown)}: "
+                         f"choose from {sorted(fields)}")
     return SimTeacher(**{**TEACHERS[name], **overrides}, seed=seed)
 
 
@@ -247,17 +249,20 @@ def load_labels(path: str) -> list[dict]:
 
 
 def load_pairs(path: str, shape: tuple) -> tuple[np.ndarray, ...]:
-    """--labels-from: every session of `path` as (inputs0, inputs1, y, keep), where inputs are the segments'
-    observations and actions side by side, (N, H, obs + action); ValueError when they do not fit `shape`."""
+    """--labels-from: every session of `path` as (inputs0, inputs1, y, keep), where inputs are the
+    segments' observations and actions side by side, (N, H, obs + action); ValueError when they
+    do not fit `shape`."""
     sessions = load_labels(path)
     try:
-        inputs = [np.concatenate([np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1) for s in sessions])
+        inputs = [np.concatenate([np.concatenate([s[f"obs{i}"], s[f"actions{i}"]], -1)
+                                  for s in sessions])
                   for i in (0, 1)]
     except (KeyError, ValueError) as error:
-        raise ValueError(f"{path!r}: its label files hold no segments' obs and actions ({error})") from None
+        raise ValueError(f"{path!r}: its label files hold no segments' obs and actions "
+                         f"({error})") from None
     if inputs[0].shape[1:] != tuple(shape):
-        raise ValueError(f"--labels-from: segments of shape {inputs[0].shape[1:]} do not fit this run's "
-                         f"{tuple(shape)} (segment length, observation + action size)")
+        raise ValueError(f"--labels-from: segments of shape {inputs[0].shape[1:]} do not fit this "
+                         f"run's {tuple(shape)} (segment length, observation + action size)")
     return (*inputs, *(np.concatenate([s[key] for s in sessions]) for key in ("y", "keep")))
 
 
@@ -319,7 +324,7 @@ class HumanTeacher:
     run_dir: str
     """the run's directory (its queries/ is where label_server.py looks)"""
     episodes: object = ()
-    """the query pool: entries (observations, actions, true rewards, reset seed) of whole episodes"""
+    """the query pool: whole episodes as (observations, actions, true rewards, reset seed)"""
     session: int = 0
     """the next session's number"""
 
@@ -334,10 +339,10 @@ class HumanTeacher:
 
     def label(self, rewards0: np.ndarray, rewards1: np.ndarray, queries: dict | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
-        """(y, keep) as SimTeacher.label's, from a person's answers. `queries`: the session's step and
-        where each segment was cut (episode0, start0, episode1, start1: indices into `episodes` and
-        first steps); the rewards are not shown. A session asked again (after --resume) keeps the
-        answers already given."""
+        """(y, keep) as SimTeacher.label's, from a person's answers. `queries`: the session's step
+        and where each segment was cut (episode0, start0, episode1, start1: indices into
+        `episodes` and first steps); the rewards are not shown. A session asked again (after
+        --resume) keeps the answers already given."""
         n = len(rewards0)
         saved = {"step": queries["step"]}
         for side in (0, 1):
@@ -365,7 +370,8 @@ class HumanTeacher:
             sys.exit(128 + signum)
 
         # While it waits, SIGTERM or SIGINT end the run at once
-        handlers = {signum: signal.signal(signum, stop) for signum in (signal.SIGTERM, signal.SIGINT)}
+        signums = (signal.SIGTERM, signal.SIGINT)
+        handlers = {signum: signal.signal(signum, stop) for signum in signums}
         answers = {}
         while len(answers) < n:
             time.sleep(0.2)

@@ -42,6 +42,12 @@ def test_lines_prose_and_main_loop_stay_within_the_goals(script):
     assert "global" not in names
 
 
+@pytest.mark.parametrize("module", ("sim_teacher.py", "samplers.py", "label_server.py", "fit_teacher.py"))
+def test_the_modules_a_reader_copies_beside_the_scripts_keep_lines_of_at_most_100_characters(module):
+    long_lines = [number for number, line in enumerate(source(module).splitlines(), 1) if len(line) > 100]
+    assert not long_lines
+
+
 def test_the_counts_are_those_of_the_issue():
     # def f ( ) : """Doc.""" return 1: 8 tokens; comments and layout do not count, a docstring is one token
     assert len(content_tokens('def f():\n    """Doc."""  # note\n\n    return 1\n')) == 8
