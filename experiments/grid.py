@@ -164,6 +164,11 @@ PRESETS = {
         "report compares it with that preset's SAC runs, 3 seeds",
         Grid(env_ids=("quadruped-walk",), teachers=("myopic",), budgets=("1000/100",), ground_truth=False,
              root="runs/quadruped-walk", flags=CPU_QUADRUPED)),
+    "quadruped-walk-cpu-prefppo": (
+        "PrefPPO (oracle, 1000 labels in sessions of 100 every 32K steps) and PPO on the true reward, quadruped-walk, "
+        "1M steps, the paper's PrefPPO preset, 3 seeds",
+        Grid(algorithms=("prefppo",), env_ids=("quadruped-walk",), teachers=("oracle",), budgets=("1000/100",),
+             root="runs/quadruped-walk-prefppo", flags=CPU_PREFPPO)),
     # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
     "parity-pebble": (
         "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",

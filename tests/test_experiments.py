@@ -508,6 +508,23 @@ def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_
         name: tuple(word.replace("oracle", "myopic") for word in flags) for name, flags in oracle.items()}
 
 
+def test_prefppo_quadruped_cpu_preset_keeps_the_task_s_preset_and_spends_1000_labels_in_1m_steps(monkeypatch):
+    runs = grid.expand(grid.PRESETS["quadruped-walk-cpu-prefppo"][1])
+    assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
+    assert all(r.algorithm == "prefppo" for r in runs)
+    (run,) = [r for r in runs if "--teacher" in r.flags and r.name.endswith("__s1")]
+    monkeypatch.setattr(sys, "argv", ["prefppo.py", *run.flags])
+    args = prefppo.parse_args()
+    assert (args.num_envs, args.minibatch_size, args.gae_lambda) == (16, 128, 0.9)  # quadruped's preset
+    assert (args.total_timesteps, args.feedback_every, args.unsup_steps) == (1_000_000, 32_000, 32_000)
+    rollout = args.num_envs * args.num_steps
+    steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
+    sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps,
+                           args.total_timesteps)
+    assert list(sizes) == [100] * 10
+    assert planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout) == 1000
+
+
 # ---------------------------------------------------------------- reward_check.py: r_hat on an expert's episodes
 
 
