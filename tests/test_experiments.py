@@ -525,6 +525,25 @@ def test_prefppo_quadruped_cpu_preset_keeps_the_task_s_preset_and_spends_1000_la
     assert planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout) == 1000
 
 
+def test_prefppo_button_press_cpu_preset_keeps_the_meta_world_preset_and_spends_6100_labels_in_1m_steps(
+        monkeypatch):
+    runs = grid.expand(grid.PRESETS["button-press-cpu-prefppo"][1])
+    assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
+    assert all(r.algorithm == "prefppo" for r in runs)
+    (run,) = [r for r in runs if "--teacher" in r.flags and r.name.endswith("__s1")]
+    monkeypatch.setattr(sys, "argv", ["prefppo.py", *run.flags])
+    args = prefppo.parse_args()
+    assert (args.num_envs, args.num_steps, args.minibatch_size, args.segment_len) == (8, 250, 128, 25)
+    assert (args.learning_rate, args.reward_epochs) == (3e-4, 50)  # Meta-World's preset
+    assert (args.total_timesteps, args.feedback_every, args.unsup_steps) == (1_000_000, 16_000, 32_000)
+    rollout = args.num_envs * args.num_steps
+    steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
+    sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps,
+                           args.total_timesteps)
+    assert list(sizes) == [100] * 61 and steps[-1] == 32_000 + 60 * 16_000
+    assert planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout) == 6100
+
+
 # ---------------------------------------------------------------- reward_check.py: r_hat on an expert's episodes
 
 
