@@ -508,40 +508,27 @@ def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_
         name: tuple(word.replace("oracle", "myopic") for word in flags) for name, flags in oracle.items()}
 
 
-def test_prefppo_quadruped_cpu_preset_keeps_the_task_s_preset_and_spends_1000_labels_in_1m_steps(monkeypatch):
-    runs = grid.expand(grid.PRESETS["quadruped-walk-cpu-prefppo"][1])
+@pytest.mark.parametrize("preset, task_values, sessions", [
+    ("quadruped-walk-cpu-prefppo", dict(num_envs=16, minibatch_size=128, gae_lambda=0.9, feedback_every=32_000), 10),
+    ("button-press-cpu-prefppo", dict(num_envs=8, num_steps=250, minibatch_size=128, segment_len=25,
+                                      learning_rate=3e-4, reward_epochs=50, feedback_every=16_000), 61)])
+def test_prefppo_cpu_presets_keep_the_task_s_preset_and_spend_sessions_of_100_in_1m_steps(monkeypatch, preset,
+                                                                                         task_values, sessions):
+    runs = grid.expand(grid.PRESETS[preset][1])
     assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
     assert all(r.algorithm == "prefppo" for r in runs)
     (run,) = [r for r in runs if "--teacher" in r.flags and r.name.endswith("__s1")]
     monkeypatch.setattr(sys, "argv", ["prefppo.py", *run.flags])
     args = prefppo.parse_args()
-    assert (args.num_envs, args.minibatch_size, args.gae_lambda) == (16, 128, 0.9)  # quadruped's preset
-    assert (args.total_timesteps, args.feedback_every, args.unsup_steps) == (1_000_000, 32_000, 32_000)
+    assert {name: getattr(args, name) for name in task_values} == task_values  # the task's PrefPPO preset
+    assert (args.total_timesteps, args.unsup_steps) == (1_000_000, 32_000)
     rollout = args.num_envs * args.num_steps
     steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
     sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps,
                            args.total_timesteps)
-    assert list(sizes) == [100] * 10
-    assert planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout) == 1000
-
-
-def test_prefppo_button_press_cpu_preset_keeps_the_meta_world_preset_and_spends_6100_labels_in_1m_steps(
-        monkeypatch):
-    runs = grid.expand(grid.PRESETS["button-press-cpu-prefppo"][1])
-    assert sorted("--ground-truth-reward" in r.flags for r in runs) == [False] * 3 + [True] * 3
-    assert all(r.algorithm == "prefppo" for r in runs)
-    (run,) = [r for r in runs if "--teacher" in r.flags and r.name.endswith("__s1")]
-    monkeypatch.setattr(sys, "argv", ["prefppo.py", *run.flags])
-    args = prefppo.parse_args()
-    assert (args.num_envs, args.num_steps, args.minibatch_size, args.segment_len) == (8, 250, 128, 25)
-    assert (args.learning_rate, args.reward_epochs) == (3e-4, 50)  # Meta-World's preset
-    assert (args.total_timesteps, args.feedback_every, args.unsup_steps) == (1_000_000, 16_000, 32_000)
-    rollout = args.num_envs * args.num_steps
-    steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
-    sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session, steps,
-                           args.total_timesteps)
-    assert list(sizes) == [100] * 61 and steps[-1] == 32_000 + 60 * 16_000
-    assert planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout) == 6100
+    assert list(sizes) == [100] * sessions and steps[sessions - 1] == 32_000 + (sessions - 1) * args.feedback_every
+    labels = planned_labels(sizes, args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
+    assert labels == 100 * sessions == args.max_feedback
 
 
 # ---------------------------------------------------------------- reward_check.py: r_hat on an expert's episodes
