@@ -398,8 +398,9 @@ def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, cli
     log_prob = distribution.log_prob(actions).sum(-1)
     policy_loss, ratio = ppo_policy_loss(log_prob, old_logprobs, adv, clip)
     value_loss = F.mse_loss(critic(obs)[:, 0], returns)  # Eq. (5), unclipped (reference code)
+    # approx_kl from the log-ratio: far off-policy the ratio underflows to 0 and its log is -inf
     stats = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy,
-             "approx_kl": ((ratio - 1) - ratio.log()).mean(),
+             "approx_kl": ((ratio - 1) - (log_prob - old_logprobs)).mean(),
              "clipfrac": ((ratio - 1).abs() > clip).float().mean()}
     return policy_loss + args.vf_coef * value_loss - args.ent_coef * entropy, stats
 

@@ -282,6 +282,20 @@ def test_ppo_loss_is_the_surrogate_plus_the_weighted_value_loss_and_compiles_to_
         torch.testing.assert_close(compiled_grad, eager, rtol=1e-4, atol=1e-6)
 
 
+def test_approx_kl_stays_finite_where_an_action_has_become_far_less_likely():
+    # button-press seed 2 stopped at 220K on an infinite approx_kl: exp(-200) underflows to 0, log(0) = -inf
+    torch.manual_seed(0)
+    actor, critic = prefppo.Actor(5, 3, 16, 2, use_sde=True), prefppo.make_critic(5, 16, 2)
+    obs, actions = torch.randn(4, 5), torch.randn(4, 3)
+    with torch.no_grad():
+        log_prob = actor.distribution(obs)[0].log_prob(actions).sum(-1)
+    old_logprobs = log_prob + torch.tensor([200.0, 0.0, 0.0, 0.0])
+    _, stats = prefppo.ppo_loss(actor, critic, obs, actions, old_logprobs, torch.randn(4), torch.randn(4),
+                                torch.tensor(0.3), prefppo.Args())
+    # (r - 1) - log r per sample: (0 - 1) + 200 for the first, 0 for the others
+    assert stats["approx_kl"].item() == pytest.approx(199 / 4, rel=1e-5)
+
+
 def test_the_value_loss_is_weighted_once_by_vf_coef():
     assert prefppo.Args().vf_coef == 0.5  # 0.5 x MSE in the total loss (reference code: SB3), not 0.25
 
