@@ -95,6 +95,8 @@ class Grid:
     """GPUs per run on Ray (e.g. 0.25: four runs share a GPU; add --flags='--cuda')"""
     dry_run: bool = False
     """print what would run (start, resume or skip, with the commands) and stop"""
+    retry_non_finite: bool = False
+    """resume the runs that stopped on a non-finite value (exit code 3), once its cause is fixed"""
     progress_every: float = 60.0
     """seconds between progress lines"""
 
@@ -501,7 +503,8 @@ def failure_of(code: int) -> str | None:
     return f"exit code {code} ({EXIT_MEANINGS.get(code, 'error')})"
 
 
-def plan(runs: list[Run], root: Path, spec: dict) -> tuple[list[tuple[Run, bool]], list[tuple[Run, str]], list[str]]:
+def plan(runs: list[Run], root: Path, spec: dict, retry_non_finite: bool = False
+         ) -> tuple[list[tuple[Run, bool]], list[tuple[Run, str]], list[str]]:
     """(runs to do with their resume flag, runs refused with the reason, names of finished runs)."""
     todo, refused, finished = [], [], []
     for run in runs:
@@ -512,9 +515,10 @@ def plan(runs: list[Run], root: Path, spec: dict) -> tuple[list[tuple[Run, bool]
                                  "another --root or move it away"))
         elif state == "finished":
             finished.append(run.name)
-        elif state == "resumable" and recorded and recorded.get("exit_code") == 3:
+        elif state == "resumable" and recorded and recorded.get("exit_code") == 3 and not retry_non_finite:
             refused.append((run, f"it stopped on a non-finite value (exit code 3), which a resume would meet again; "
-                                 f"remove {run_dir} to start it afresh"))
+                                 f"once its cause is fixed, --retry-non-finite resumes it; remove {run_dir} to "
+                                 "start it afresh"))
         else:
             todo.append((run, state == "resumable"))
     return todo, refused, finished
@@ -524,7 +528,7 @@ def run_grid(grid: Grid) -> int:
     """Plans, prints and runs the grid; returns the exit code (0: all finished, 1: a run failed)."""
     root = Path(grid.root).resolve()
     runs, spec = expand(grid), load_spec(root)
-    todo, refused, finished = plan(runs, root, spec)
+    todo, refused, finished = plan(runs, root, spec, grid.retry_non_finite)
     logs = {run.name: root / "logs" / f"{run.name}.log" for run in runs}
     print(f"grid: {len(runs)} runs in {root}: {len(finished)} finished, {sum(r for _, r in todo)} to resume, "
           f"{sum(not r for _, r in todo)} to start, {len(refused)} refused", flush=True)

@@ -112,6 +112,19 @@ def test_edits_run_our_scripts_through_the_edits_runner_and_are_checked(tmp_path
     assert wrong.returncode == 2 and "--edits 'raw-reward-input' is not an edit of prefppo.py" in wrong.stderr
 
 
+def test_a_run_stopped_on_a_non_finite_value_is_resumed_only_when_asked(tmp_path):
+    [run, *_] = grid.expand(grid.Grid(env_ids=("walker-walk",), teachers=("oracle",), seeds=(1,)))
+    (tmp_path / run.name).mkdir()
+    (tmp_path / run.name / "config.json").write_text(json.dumps({"total_timesteps": 1000}))
+    (tmp_path / run.name / "checkpoint.pt").write_bytes(b"checkpoint")
+    spec = {run.name: {"command": list(run.flags), "exit_code": 3}}
+    todo, refused, finished = grid.plan([run], tmp_path, spec)
+    assert (todo, finished) == ([], []) and "--retry-non-finite resumes it" in refused[0][1]
+    assert grid.plan([run], tmp_path, spec, retry_non_finite=True) == ([(run, True)], [], [])
+    spec[run.name]["exit_code"] = -15  # stopped by SIGTERM after a checkpoint: resumed without asking
+    assert grid.plan([run], tmp_path, spec) == ([(run, True)], [], [])
+
+
 def test_dry_run_prints_every_command_and_starts_nothing(tmp_path):
     result = run_grid(tmp_path / "grid", *TINY_GRID, "--dry-run")
     assert result.returncode == 0, result.stderr
