@@ -176,6 +176,11 @@ PRESETS = {
         "1M steps, the paper's PrefPPO preset, 3 seeds",
         Grid(algorithms=("prefppo",), env_ids=("button-press",), teachers=("oracle",), budgets=("6100/100",),
              root="runs/button-press-prefppo", flags=CPU_PREFPPO)),
+    "sweep-into-cpu-prefppo": (
+        "PrefPPO (oracle, 6100 labels in sessions of 100 every 16K steps) and PPO on the true reward, sweep-into, "
+        "1M steps, the paper's PrefPPO preset, 3 seeds",
+        Grid(algorithms=("prefppo",), env_ids=("sweep-into",), teachers=("oracle",), budgets=("6100/100",),
+             root="runs/sweep-into-prefppo", flags=CPU_PREFPPO)),
     # Parity with the reference code (docs/parity.md): one root, so that one report compares every pair
     "parity-pebble": (
         "PEBBLE (oracle, 1000 labels) at the README's CPU scale, ours and the reference code's, 5 seeds each",

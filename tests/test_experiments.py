@@ -524,7 +524,9 @@ def test_quadruped_cpu_preset_spends_its_1000_labels_in_10_sessions_within_250k_
 @pytest.mark.parametrize("preset, task_values, sessions", [
     ("quadruped-walk-cpu-prefppo", dict(num_envs=16, minibatch_size=128, gae_lambda=0.9, feedback_every=32_000), 10),
     ("button-press-cpu-prefppo", dict(num_envs=8, num_steps=250, minibatch_size=128, segment_len=25,
-                                      learning_rate=3e-4, reward_epochs=50, feedback_every=16_000), 61)])
+                                      learning_rate=3e-4, reward_epochs=50, feedback_every=16_000), 61),
+    ("sweep-into-cpu-prefppo", dict(num_envs=32, num_steps=250, minibatch_size=256, segment_len=25,
+                                    learning_rate=3e-4, reward_epochs=50, feedback_every=16_000), 61)])
 def test_prefppo_cpu_presets_keep_the_task_s_preset_and_spend_sessions_of_100_in_1m_steps(monkeypatch, preset,
                                                                                          task_values, sessions):
     runs = grid.expand(grid.PRESETS[preset][1])
