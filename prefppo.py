@@ -811,8 +811,12 @@ def check_finite(losses):
 
 
 def save_checkpoint(path, parts):
+    save_whole(path, snapshot(parts))
+
+
+def save_whole(path, obj):
     data = io.BytesIO()
-    torch.save(snapshot(parts), data)
+    torch.save(obj, data)
     save_file(path, data.getvalue())
 
 
@@ -1071,6 +1075,11 @@ if __name__ == "__main__":
                            device)
             if (args.checkpoint_every and global_step % args.checkpoint_every < rollout
                     or stop or global_step >= args.total_timesteps):
+                if global_step >= args.total_timesteps:  # before the checkpoint
+                    final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
+                                   "reward_model": reward_model.state_dict(),
+                                   "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
+                    save_whole(os.path.join(args.output_dir, "final_model.pt"), final_model)
                 save_checkpoint(checkpoint_path, parts)
             if stop and global_step < args.total_timesteps:
                 say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
@@ -1080,10 +1089,6 @@ if __name__ == "__main__":
         fail(f"{error} at step {progress.global_step}; the run stopped, its last checkpoint in "
              f"{args.output_dir} is intact", 3)
 
-    final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
-                   "reward_model": reward_model.state_dict(), "obs_mean": obs_stats.mean,
-                   "obs_var": obs_stats.var}
-    torch.save(final_model, os.path.join(args.output_dir, "final_model.pt"))
     say(f"done: {progress.sessions_done} feedback sessions, {progress.feedback_used} queries; "
         f"outputs in {args.output_dir}")
     eval_env.close()

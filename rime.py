@@ -879,8 +879,12 @@ def check_finite(losses):
 
 
 def save_checkpoint(path, parts):
+    save_whole(path, snapshot(parts))
+
+
+def save_whole(path, obj):
     data = io.BytesIO()
-    torch.save(snapshot(parts), data)
+    torch.save(obj, data)
     save_file(path, data.getvalue())
 
 
@@ -1194,18 +1198,19 @@ if __name__ == "__main__":
             if (args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop
                     or global_step == args.total_timesteps):
                 check_finite(losses)
+                if global_step == args.total_timesteps:  # before the checkpoint
+                    final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
+                                   "reward_model": reward_model.state_dict()}
+                    save_whole(os.path.join(args.output_dir, "final_model.pt"), final_model)
                 save_checkpoint(checkpoint_path, parts)
             if stop and global_step < args.total_timesteps:
                 say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                     f"continue with --resume {args.output_dir}")
                 sys.exit(128 + stop[0])
     except (FloatingPointError, OSError) as error:
-        fail(f"{error} at step {progress.global_step + 1}; the run stopped, its last checkpoint "
+        fail(f"{error} at step {global_step}; the run stopped, its last checkpoint "
              f"in {args.output_dir} is intact", 3)
 
-    final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
-                   "reward_model": reward_model.state_dict()}
-    torch.save(final_model, os.path.join(args.output_dir, "final_model.pt"))
     say(f"done: {progress.sessions_done} feedback sessions, {progress.feedback_used} queries; "
         f"outputs in {args.output_dir}")
     eval_env.close()

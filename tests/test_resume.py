@@ -2,6 +2,7 @@
 and SIGTERM (compared with the uninterrupted run of the same seed), atomic checkpoint writes, --labels-from,
 non-finite stops and output-directory failures."""
 
+import errno
 import io
 import json
 import re
@@ -292,3 +293,38 @@ def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_pa
     assert len(lines) == 1 and "File too large" in lines[0] and f"its last checkpoint in {out} is intact" in lines[0]
     assert not (out / "checkpoint.pt").exists() and not (out / "checkpoint.pt.tmp").exists()
     assert eval_rows(out)  # what was written before is there
+
+
+def refuse_final_model():
+    """A full disk when the run writes final_model.pt, and only then (save_file: every file a run writes)."""
+    sys.path.insert(0, str(ROOT))
+    import sim_teacher as module
+    write = module.save_file
+
+    def save_file(path, data):
+        if path.endswith("final_model.pt"):
+            raise OSError(errno.ENOSPC, "No space left on device", path)
+        write(path, data)
+
+    module.save_file = save_file
+
+
+@pytest.mark.parametrize("script", WITH_RIME)
+def test_a_failed_final_model_write_is_one_line_and_resume_finishes_the_run(script, tmp_path, uninterrupted):
+    """final_model.pt is written whole, before the last checkpoint: if it fails, the last checkpoint is an earlier
+    one, which --resume continues to the same end (the grid would have called a half-written file finished)."""
+    out = tmp_path / "run"
+    total = int(RUNS[script][RUNS[script].index("--total-timesteps") + 1])
+    process = start_script(script, out, *RUNS[script], before=refuse_final_model)
+    stdout, stderr = process.communicate(timeout=300)
+    lines = stderr.strip().splitlines()
+    assert process.returncode == 3 and "Traceback" not in stderr, stderr[-3000:]
+    assert len(lines) == 1 and "No space left on device" in lines[0] and f"at step {total};" in lines[0], lines
+    assert not (out / "final_model.pt").exists() and not (out / "final_model.pt.tmp").exists()
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["progress"]["global_step"] < total
+
+    result = run_script(script, out, "--resume", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert_same_run(out, uninterrupted[script])
+    final, reference = (torch.load(run / "final_model.pt", weights_only=True) for run in (out, uninterrupted[script]))
+    torch.testing.assert_close(final, reference)
