@@ -794,6 +794,13 @@ def save_whole(path, obj):
     save_file(path, data.getvalue())
 
 
+def load_checkpoint(path):
+    try:
+        return torch.load(path, "cpu", weights_only=True)
+    except Exception as error:
+        fail(f"{path} cannot be read ({type(error).__name__}): incomplete, or not a checkpoint")
+
+
 def tensors_of(inputs):
     """The tensors of a call's arguments: tensors and Batches."""
     return [t for x in inputs for t in ([x] if torch.is_tensor(x) else x)]
@@ -1003,7 +1010,7 @@ if __name__ == "__main__":
              "intrinsic_stats": intrinsic_stats, "preferences": preferences, "rng": rng,
              "action_rng": action_rng, "episodes": episodes}
     if args.resume:
-        restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
+        restore(parts, load_checkpoint(checkpoint_path), device)
         for optimizer in (actor_optimizer, critic_optimizer, alpha_optimizer):
             optimizer.param_groups[0]["capturable"] = graphs  # --compile may change on resume
         if progress.global_step >= args.total_timesteps:

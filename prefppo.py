@@ -820,6 +820,13 @@ def save_whole(path, obj):
     save_file(path, data.getvalue())
 
 
+def load_checkpoint(path):
+    try:
+        return torch.load(path, "cpu", weights_only=True)
+    except Exception as error:
+        fail(f"{path} cannot be read ({type(error).__name__}): incomplete, or not a checkpoint")
+
+
 @dataclass
 class Progress:
     """What the main loop carries besides networks, optimizers and buffers."""
@@ -979,7 +986,7 @@ if __name__ == "__main__":
              "obs_stats": obs_stats, "knn_reward": knn_reward, "preferences": preferences,
              "rng": rng, "episodes": episodes}
     if args.resume:
-        restore(parts, torch.load(checkpoint_path, "cpu", weights_only=True), device)
+        restore(parts, load_checkpoint(checkpoint_path), device)
         if progress.global_step >= args.total_timesteps:
             fail(f"the run in {args.output_dir!r} has already finished")
         say(f"resuming from the checkpoint at step {progress.global_step}")

@@ -253,12 +253,17 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
     config = json.loads((existing / "config.json").read_text())
     del config["capture_video"]
     (lacking / "config.json").write_text(json.dumps(config))
+    damaged = tmp_path / "damaged"  # a checkpoint copied only in part (torch.load would raise RuntimeError)
+    shutil.copytree(existing, damaged)
+    half = (existing / "checkpoint.pt").read_bytes()[:100_000]
+    (damaged / "checkpoint.pt").write_bytes(half)
     before = {p: p.stat().st_mtime_ns for p in existing.rglob("*")}
-    into_file, into_run, new_seed, no_config, no_checkpoint, other_version, lacking_flag = run_in_one_interpreter(
-        script, [(blocker / "run", RUNS[script]), (existing, RUNS[script]),
-                 (tmp_path / "x", ["--resume", str(existing), "--seed", "7"]), (tmp_path / "x", ["--resume", str(tmp_path)]),
-                 (tmp_path / "x", ["--resume", str(stopped)]), (tmp_path / "x", ["--resume", str(older)]),
-                 (tmp_path / "x", ["--resume", str(lacking)])])
+    into_file, into_run, new_seed, no_config, no_checkpoint, other_version, lacking_flag, unreadable = \
+        run_in_one_interpreter(script, [
+            (blocker / "run", RUNS[script]), (existing, RUNS[script]),
+            (tmp_path / "x", ["--resume", str(existing), "--seed", "7"]), (tmp_path / "x", ["--resume", str(tmp_path)]),
+            (tmp_path / "x", ["--resume", str(stopped)]), (tmp_path / "x", ["--resume", str(older)]),
+            (tmp_path / "x", ["--resume", str(lacking)]), (tmp_path / "x", ["--resume", str(damaged)])])
 
     assert into_file.returncode == 2 and into_file.stderr.startswith("error: [Errno 20] Not a directory")
     assert len(into_file.stderr.strip().splitlines()) == 1 and "Traceback" not in into_file.stderr
@@ -270,6 +275,9 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
     assert other_version.returncode == 2 and "Traceback" not in other_version.stderr
     assert "its config.json is of another version of this script" in other_version.stderr
     assert lacking_flag.returncode == 2 and "has already finished" in lacking_flag.stderr  # accepted, then finished
+    assert unreadable.returncode == 2 and len(unreadable.stderr.strip().splitlines()) == 1, unreadable.stderr[-3000:]
+    assert unreadable.stderr.startswith(f"error: {damaged / 'checkpoint.pt'} cannot be read (RuntimeError)")
+    assert (damaged / "checkpoint.pt").read_bytes() == half
 
 
 def limit_file_size():

@@ -18,7 +18,7 @@ SIZE_LIMIT = {"pebble.py": 9000, "prefppo.py": 9000, "rime.py": 10100}  # tokens
 SHARED = ("DMCEnv", "MetaWorldSeeding", "env_kind", "make_env", "numpy_seeds", "episode_seed", "knn_distance",
           "RewardEnsemble", "coverage_features", "preference_loss", "train_reward",
           "sample_queries", "add_labels", "feedback_session", "evaluate", "evaluation", "fail", "check_video",
-          "snapshot", "check_finite", "save_checkpoint", "task_defaults", "parse_args", "session_due", "say",
+          "snapshot", "check_finite", "save_checkpoint", "save_whole", "load_checkpoint", "task_defaults", "parse_args", "session_due", "say",
           "duration", "Console")
 
 
