@@ -780,7 +780,7 @@ def parse_args():
             with open(os.path.join(given.resume, "config.json")) as f:
                 saved = json.load(f)
         except (OSError, ValueError) as error:
-            fail(f"--resume {given.resume!r}: no config.json there ({error})")
+            fail(f"--resume {given.resume!r}: its config.json cannot be read ({error})")
         names = {f.name for f in fields(Args)}
         may_lack = set(RESUME_MAY_CHANGE)  # older runs may lack them
         if not set(saved) <= names or names - set(saved) - may_lack:

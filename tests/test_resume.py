@@ -270,7 +270,7 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
     assert into_run.returncode == 2 and "already holds a run" in into_run.stderr
     assert {p: p.stat().st_mtime_ns for p in existing.rglob("*")} == before
     assert new_seed.returncode == 2 and "error: --seed cannot change when resuming" in new_seed.stderr
-    assert no_config.returncode == 2 and "no config.json there" in no_config.stderr
+    assert no_config.returncode == 2 and "its config.json cannot be read ([Errno 2]" in no_config.stderr
     assert no_checkpoint.returncode == 2 and "no checkpoint.pt there" in no_checkpoint.stderr
     assert other_version.returncode == 2 and "Traceback" not in other_version.stderr
     assert "its config.json is of another version of this script" in other_version.stderr
