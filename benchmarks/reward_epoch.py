@@ -10,6 +10,7 @@ Inputs here are random (the cost of an epoch does not depend on their values); d
 """
 
 import argparse
+import json
 import statistics
 import sys
 import time
@@ -34,11 +35,13 @@ def seconds(fn, repeats):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env-id", default="sweep-into", help="the task whose observation and action sizes to use")
+    parser.add_argument("--env-id", default="sweep-into", help="the task whose sizes to use (--checkpoint: its run's)")
     parser.add_argument("--labels", type=int, nargs="+", default=[1000, 3000, 6100])
     parser.add_argument("--checkpoint", help="a prefppo.py run directory with checkpoint.pt")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    if args.checkpoint:  # its task's sizes
+        args.env_id = json.loads((Path(args.checkpoint) / "config.json").read_text())["env_id"]
     torch.set_num_threads(1)
     torch.manual_seed(0)
     task = prefppo.task_defaults(args.env_id, "oracle")  # the task's preset: segment length, batch size
@@ -81,6 +84,7 @@ def main():
                     break
             print(f"shuffle seed {seed}: {len(state['preferences']['y'])} labels, accuracy {accuracy:.3f} after "
                   f"{epoch} epochs, {time.perf_counter() - start:.0f} s", flush=True)
+
 
 if __name__ == "__main__":
     main()
