@@ -1094,7 +1094,7 @@ if __name__ == "__main__":
                 sys.exit(128 + stop[0])
     except (FloatingPointError, OSError) as error:
         fail(f"{error} at step {progress.global_step}; the run stopped, its last checkpoint in "
-             f"{args.output_dir} is intact", 3)
+             f"{args.output_dir} is intact", 3 if isinstance(error, FloatingPointError) else 4)
 
     say(f"done: {progress.sessions_done} feedback sessions, {progress.feedback_used} queries; "
         f"outputs in {args.output_dir}")

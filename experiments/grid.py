@@ -46,7 +46,8 @@ EDITS_RUNNER = ROOT / "benchmarks" / "reference" / "edits.py"
 # Flags the grid sets for each run; --flags must not set them too
 GRID_FLAGS = ("--env-id", "--seed", "--teacher", "--sampler", "--schedule", "--max-feedback", "--feedback-per-session",
               "--ground-truth-reward", "--output-dir", "--resume")
-EXIT_MEANINGS = {0: "ok", 1: "a write failed", 2: "bad input", 3: "non-finite value"}
+EXIT_MEANINGS = {0: "ok", 1: "an unexpected error: its log has the traceback", 2: "bad input",
+                 3: "non-finite value", 4: "a write failed (a full disk?)"}
 
 
 @dataclass(frozen=True)

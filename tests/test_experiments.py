@@ -123,6 +123,9 @@ def test_a_run_stopped_on_a_non_finite_value_is_resumed_only_when_asked(tmp_path
     assert grid.plan([run], tmp_path, spec, retry_non_finite=True) == ([(run, True)], [], [])
     spec[run.name]["exit_code"] = -15  # stopped by SIGTERM after a checkpoint: resumed without asking
     assert grid.plan([run], tmp_path, spec) == ([(run, True)], [], [])
+    spec[run.name]["exit_code"] = 4  # a write failed (a full disk, since freed): resumed without asking
+    assert grid.plan([run], tmp_path, spec) == ([(run, True)], [], [])
+    assert grid.failure_of(4) == "exit code 4 (a write failed (a full disk?))"
 
 
 def test_dry_run_prints_every_command_and_starts_nothing(tmp_path):

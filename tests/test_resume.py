@@ -296,7 +296,7 @@ def test_a_full_disk_ends_with_one_line_and_no_partial_checkpoint(script, tmp_pa
     out = tmp_path / "run"
     process = start_script(script, out, *RUNS[script], *FIRST_CHECKPOINT[script], before=limit_file_size)
     stdout, stderr = process.communicate(timeout=300)
-    assert process.returncode == 3 and "Traceback" not in stderr
+    assert process.returncode == 4 and "Traceback" not in stderr
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and "File too large" in lines[0] and f"its last checkpoint in {out} is intact" in lines[0]
     assert not (out / "checkpoint.pt").exists() and not (out / "checkpoint.pt.tmp").exists()
@@ -326,7 +326,7 @@ def test_a_failed_final_model_write_is_one_line_and_resume_finishes_the_run(scri
     process = start_script(script, out, *RUNS[script], before=refuse_final_model)
     stdout, stderr = process.communicate(timeout=300)
     lines = stderr.strip().splitlines()
-    assert process.returncode == 3 and "Traceback" not in stderr, stderr[-3000:]
+    assert process.returncode == 4 and "Traceback" not in stderr, stderr[-3000:]
     assert len(lines) == 1 and "No space left on device" in lines[0] and f"at step {total};" in lines[0], lines
     assert not (out / "final_model.pt").exists() and not (out / "final_model.pt.tmp").exists()
     assert torch.load(out / "checkpoint.pt", weights_only=True)["progress"]["global_step"] < total
