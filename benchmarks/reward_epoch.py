@@ -11,7 +11,6 @@ Inputs here are random (the cost of an epoch does not depend on their values); d
 
 import argparse
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -22,15 +21,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 import prefppo  # noqa: E402
-
-
-def seconds(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+from benchmarks.pebble_overhead import median_seconds  # noqa: E402
 
 
 def main():
@@ -52,8 +43,7 @@ def main():
     width = obs_dim + action_dim
     forward_macs = width * 256 + 2 * 256 * 256 + 256  # RewardEnsemble: 3 x 256, one output
     a, b = torch.randn(config.reward_batch_size * segment_len, 256), torch.randn(256, 256)
-    a @ b
-    plain = 2 * a.shape[0] * 256 * 256 / seconds(lambda: [a @ b for _ in range(200)], args.repeats) * 200 / 1e9
+    plain = 2 * a.shape[0] * 256 * 256 / median_seconds(lambda: [a @ b for _ in range(200)], args.repeats) * 200 / 1e9
     print(f"{args.env_id}: segments of {segment_len} steps x {width} inputs, 3 members of 3 x 256, batches of "
           f"{config.reward_batch_size}; plain fp32 matmul ({a.shape[0]} x 256 x 256): {plain:.0f} GFLOP/s\n")
     print("| labels | one epoch (s) | GFLOP/s | / plain matmul |")
@@ -64,7 +54,7 @@ def main():
         preferences = {"inputs0": torch.randn(labels, segment_len, width),
                        "inputs1": torch.randn(labels, segment_len, width),
                        "y": torch.randint(0, 2, (labels,)).float()}
-        epoch = seconds(lambda: prefppo.train_reward(model, optimizer, preferences, config), args.repeats)
+        epoch = median_seconds(lambda: prefppo.train_reward(model, optimizer, preferences, config), args.repeats)
         # training a row: forward, input gradient, weight gradient, each about the forward's multiply-adds
         gflops = 2 * 3 * forward_macs * 2 * segment_len * 3 * labels / epoch / 1e9
         print(f"| {labels} | {epoch:.2f} | {gflops:.0f} | {gflops / plain:.0%} |", flush=True)
