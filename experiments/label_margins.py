@@ -67,8 +67,9 @@ def fits(path: str, sessions: list[dict], seed: int, epochs: int) -> dict:
     """{"labels": judged(...), "true reward": judged(...)} on a held-out fifth of the kept pairs."""
     obs_dim = sessions[0]["obs0"].shape[-1]
     shape = (sessions[0]["obs0"].shape[1], obs_dim + sessions[0]["actions0"].shape[-1])
-    keep = np.concatenate([s["keep"] for s in sessions])
-    *inputs, y, _ = (torch.as_tensor(part[keep], dtype=torch.float32) for part in load_pairs(path, shape))
+    inputs0, inputs1, y, keep = load_pairs(path, shape)
+    inputs = [torch.as_tensor(side[keep], dtype=torch.float32) for side in (inputs0, inputs1)]
+    y = torch.as_tensor(y[keep], dtype=torch.float32)
     rewards = [torch.as_tensor(np.concatenate([s[f"rewards{i}"] for s in sessions])[keep]) for i in (0, 1)]
     order = torch.randperm(len(y), generator=torch.Generator().manual_seed(seed))
     held_out, train = order[: len(y) // 5], order[len(y) // 5 :]
