@@ -39,7 +39,7 @@ class Args:
     seeds: int = 1
     """held-out splits (and initialisations) to fit; 0: the margins table only"""
     epochs: int = 50
-    """most epochs of reward learning on the labels (the regression runs REGRESSION_EPOCHS)"""
+    """most epochs of reward learning on the labels (the regression always runs 10)"""
 
 
 def margins(sessions: list[dict], stretches: int) -> list[dict]:
