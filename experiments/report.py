@@ -667,13 +667,19 @@ def ground_truth_markdown(rows: list[dict], figures: list[Path], target: Path, c
 
 def discriminator(run: Run) -> dict | None:
     """RIME's discriminator at the run's last feedback session (its label file's trusted, flipped, dropped,
-    precision and recall), or None for a run without them."""
+    precision and recall; for a run kept without its labels, as in docs/, its discriminator.csv's last row), or
+    None for a run without them."""
+    keys = ("trusted", "flipped", "dropped", "precision", "recall")
     files = sorted((run.path / "labels").glob("session_*.npz"))
-    if not files:
+    if files:
+        with np.load(files[-1]) as data:
+            return {key: float(data[key]) for key in keys} if all(key in data.files for key in keys) else None
+    kept = run.path / "discriminator.csv"
+    if not kept.is_file():
         return None
-    with np.load(files[-1]) as data:
-        keys = ("trusted", "flipped", "dropped", "precision", "recall")
-        return {key: float(data[key]) for key in keys} if all(key in data.files for key in keys) else None
+    with open(kept) as f:
+        last = list(csv.DictReader(f))[-1]
+    return {key: float(last[key]) for key in keys}
 
 
 def digits(metric: str) -> int:

@@ -458,6 +458,10 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
         for session in (1, 2):  # the last session's record is reported
             np.savez(root / f"rime_{seed}" / "labels" / f"session_000{session}.npz", trusted=800,
                      flipped=90 * (session - 1) + seed, dropped=110, precision=0.6, recall=0.4)
+    (root / "rime_3" / "labels" / "session_0002.npz").unlink()
+    (root / "rime_3" / "labels" / "session_0001.npz").unlink()  # kept without labels, as in docs/: the csv
+    (root / "rime_3" / "discriminator.csv").write_text("session,step,trusted,flipped,dropped,precision,recall\n"
+                                                      "0,10001,90,1,9,0.5,0.25\n1,19001,185,3,12,0.75,0.5\n")
     for seed, final in enumerate([100, 110, 120], 1):
         write_run(root, f"pebble_{seed}", seed, [60, final])
     write_run(root, "rime_oracle_1", 1, [50, 900], extra={"rime_alpha": 0.5, "max_feedback": 500})  # no twin
@@ -471,6 +475,7 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     assert "| rime | 1 2 3 | 720.0 ± 16.3 | 700 720 740 | 385.0 |" in text
     assert "| pebble | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 85.0 |" in text
     assert "| 2 | 800 | 92 | 110 | 0.60 | 0.40 |" in text
+    assert "| 3 | 185 | 3 | 12 | 0.75 | 0.50 |" in text
     assert "compare: walker-walk / oracle / 1000/100 / disagreement / uniform: higher: rime - pebble" in result.stdout
     figure = root / "report" / "compare_rime_pebble_rime_walker-walk_oracle_1000-100_disagreement_uniform.png"
     assert figure.read_bytes()[:4] == b"\x89PNG"
