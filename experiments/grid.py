@@ -220,9 +220,9 @@ PRESETS = {
              ground_truth=False, root="runs/rime-eps0.3",
              flags=CPU_PEBBLE + " --checkpoint-every 10000 --teacher-eps-mistake 0.3")),
     "rime-oracle": (
-        "RIME and PEBBLE with the oracle teacher (what RIME costs when no label is wrong), as rime-mistake, 3 seeds",
-        Grid(algorithms=("pebble", "rime"), teachers=("oracle",), budgets=("1000/100",), ground_truth=False,
-             root="runs/rime", flags=CPU_PEBBLE)),
+        "RIME and PEBBLE with the oracle teacher (what RIME costs when no label is wrong), as rime-mistake, 5 seeds",
+        Grid(algorithms=("pebble", "rime"), teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
+             ground_truth=False, root="runs/rime", flags=CPU_PEBBLE)),
     "rime-reference": (
         "RIME's own code (benchmarks/reference/setup_rime.sh) on rime-mistake-0.3's setting and root, 3 seeds, for "
         "report.py --compare rime reference-rime",
