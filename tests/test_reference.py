@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import shlex
+import shutil
 import subprocess
 import sys
 import types
@@ -456,12 +457,25 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
         write_run(root, f"rime_{seed}", seed, [50, final], extra={"rime_alpha": 0.5})
         (root / f"rime_{seed}" / "labels").mkdir()
         for session in (1, 2):  # the last session's record is reported
-            np.savez(root / f"rime_{seed}" / "labels" / f"session_000{session}.npz", trusted=800,
-                     flipped=90 * (session - 1) + seed, dropped=110, precision=0.6, recall=0.4)
+            np.savez(root / f"rime_{seed}" / "labels" / f"session_000{session}.npz", step=9000 * session + 1,
+                     trusted=800, flipped=90 * (session - 1) + seed, dropped=110, precision=0.6, recall=0.4)
     (root / "rime_3" / "labels" / "session_0002.npz").unlink()
-    (root / "rime_3" / "labels" / "session_0001.npz").unlink()  # kept without labels, as in docs/: the csv
-    (root / "rime_3" / "discriminator.csv").write_text("session,step,trusted,flipped,dropped,precision,recall\n"
-                                                      "0,10001,90,1,9,0.5,0.25\n1,19001,185,3,12,0.75,0.5\n")
+    np.savez(root / "rime_3" / "labels" / "session_0002.npz", step=19001, trusted=185, flipped=3, dropped=12,
+             precision=0.75, recall=0.5)
+    kept = subprocess.run([sys.executable, str(ROOT / "experiments/keep_runs.py"), str(root / "rime_3"), "--to",
+                           str(tmp_path / "kept")], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert kept.returncode == 0, kept.stderr[-2000:]
+    shutil.rmtree(root / "rime_3")  # kept without labels, as in docs/: its discriminator.csv is read
+    shutil.move(tmp_path / "kept" / "rime_3", root / "rime_3")
+    assert sorted(path.name for path in (root / "rime_3").iterdir()) == ["config.json", "discriminator.csv",
+                                                                        "eval.csv"]
+    assert (root / "rime_3" / "discriminator.csv").read_text().splitlines() == [
+        "session,step,trusted,flipped,dropped,precision,recall", "0,9001,800.0,3.0,110.0,0.6,0.4",
+        "1,19001,185.0,3.0,12.0,0.75,0.5"]
+    refused = subprocess.run([sys.executable, str(ROOT / "experiments/keep_runs.py"), str(root / "rime_4"), "--to",
+                              str(tmp_path / "kept")], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert refused.returncode == 1 and refused.stderr == f"error: {root / 'rime_4'}: no config.json or eval.csv: " \
+        "not a run folder\n"
     for seed, final in enumerate([100, 110, 120], 1):
         write_run(root, f"pebble_{seed}", seed, [60, final])
     write_run(root, "rime_oracle_1", 1, [50, 900], extra={"rime_alpha": 0.5, "max_feedback": 500})  # no twin

@@ -1,0 +1,70 @@
+"""Keep finished runs for the docs: what report.py reads of each, without checkpoints, models and label files.
+
+Per run, into a folder of the same name under --to: config.json and eval.csv; for a RIME run, its discriminator at
+every feedback session (the label files' trusted, flipped, dropped, precision and recall) as discriminator.csv,
+one row a session, which report.py --compare reads when the labels are gone; with --events, the TensorBoard files
+too (report.py --parity reads their training episodes where the reference's PrefPPO is compared).
+Docs: docs/experiments.md
+
+    python experiments/keep_runs.py runs/rime-eps0.3/rime__* --to docs/rime/data/eps0.3
+"""
+
+import csv
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+DISCRIMINATOR_KEYS = ("trusted", "flipped", "dropped", "precision", "recall")
+
+
+@dataclass
+class Args:
+    runs: tyro.conf.Positional[list[str]]
+    """run folders (each with config.json and eval.csv)"""
+    to: str
+    """folder to keep them in (docs/.../data/...)"""
+    events: bool = False
+    """also keep the TensorBoard files (events.out.tfevents.*)"""
+
+
+def discriminator_rows(labels: Path) -> list[dict]:
+    """A row per label file that has RIME's discriminator fields: the session, its step and those fields."""
+    rows = []
+    for session, file in enumerate(sorted(labels.glob("session_*.npz"))):
+        with np.load(file) as data:
+            if all(key in data.files for key in DISCRIMINATOR_KEYS):
+                rows.append({"session": session, "step": int(data["step"])}
+                            | {key: float(data[key]) for key in DISCRIMINATOR_KEYS})
+    return rows
+
+
+def keep(run: Path, target: Path, events: bool) -> None:
+    target.mkdir(parents=True, exist_ok=True)
+    names = ["config.json", "eval.csv"] + ([path.name for path in run.glob("events.out.tfevents.*")] if events else [])
+    for name in names:
+        shutil.copy2(run / name, target / name)
+    rows = discriminator_rows(run / "labels")
+    if rows:
+        with open(target / "discriminator.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+
+
+def main(args: Args) -> None:
+    runs = [Path(run) for run in args.runs]
+    for run in runs:
+        missing = [name for name in ("config.json", "eval.csv") if not (run / name).is_file()]
+        if missing:
+            sys.exit(f"error: {run}: no {' or '.join(missing)}: not a run folder")
+    for run in runs:
+        keep(run, Path(args.to) / run.name, args.events)
+        print(f"kept {run} -> {Path(args.to) / run.name}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
