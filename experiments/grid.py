@@ -224,10 +224,10 @@ PRESETS = {
         Grid(algorithms=("pebble", "rime"), teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
              ground_truth=False, root="runs/rime", flags=CPU_PEBBLE)),
     "rime-reference": (
-        "RIME's own code (benchmarks/reference/setup_rime.sh) on rime-mistake-0.3's setting and root, 3 seeds, for "
+        "RIME's own code (benchmarks/reference/setup_rime.sh) on rime-mistake-0.3's setting and root, 5 seeds, for "
         "report.py --compare rime reference-rime",
         Grid(algorithms=("rime",), implementations=("reference",), teachers=("mistake",), budgets=("1000/100",),
-             seeds=(1, 2, 3), ground_truth=False, root="runs/rime-eps0.3",
+             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/rime-eps0.3",
              flags=CPU_PEBBLE + " --teacher-eps-mistake 0.3")),
     "rime-mini-bpref": (
         "The mini B-Pref (six teachers + ground truth, 5 seeds) for RIME and for PEBBLE's default reward inputs",

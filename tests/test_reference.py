@@ -355,7 +355,7 @@ def test_grid_runs_the_reference_with_the_same_flags_under_its_own_name(tmp_path
                              capture_output=True, text=True, env=ENV, cwd=ROOT)
     assert refused.returncode == 2 and "runs RIME's code, not SAC on the true reward" in refused.stderr
     lines, printed = dry_run("rime-reference", tmp_path / "r")
-    assert len(printed) == 3 == len(lines) and all(line[3:5] == ["--algorithm", "rime"] for line in printed)
+    assert len(printed) == 5 == len(lines) and all(line[3:5] == ["--algorithm", "rime"] for line in printed)
     assert printed[0][printed[0].index("--teacher-eps-mistake") + 1] == "0.3"
     lines, printed = dry_run("parity-pebble-cheetah", tmp_path / "c")
     assert len(printed) == 3 and len(lines) == 6
