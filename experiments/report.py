@@ -176,6 +176,7 @@ def aggregate(scores: dict[str, np.ndarray], reps: int, seed: int) -> dict[str, 
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_median(x), metrics.aggregate_mean(x),
                          metrics.aggregate_optimality_gap(x)])
 
+    np.random.seed(seed)  # rliable's StratifiedBootstrap draws from the global generator, not from random_state
     with warnings.catch_warnings(action="ignore", category=FutureWarning):  # arch's note on rliable's RandomState
         points, intervals = library.get_interval_estimates(scores, all_metrics, reps=reps,
                                                            random_state=np.random.RandomState(seed))

@@ -375,6 +375,14 @@ def test_aggregates_equal_the_values_computed_by_hand(synthetic):
     assert across["oracledisagreement"]["tasks"] == "2" and across["oracledisagreement"]["runs"] == "12"
 
 
+def test_bootstrap_intervals_repeat_for_a_seed_and_change_with_it():
+    # nine distinct scores: two bootstraps of 2000 draws from other random numbers give other percentiles
+    scores = {"arm": np.array([643, 98, 287, 603, 574, 552, 443, 752, 467.0])[:, None]}
+    first = report.aggregate(scores, 2000, 0)
+    assert report.aggregate(scores, 2000, 0) == first
+    assert report.aggregate(scores, 2000, 1)["arm"]["iqm"][1:] != first["arm"]["iqm"][1:]
+
+
 def test_normalised_return_is_divided_by_the_mean_of_the_same_algorithms_ground_truth_runs(synthetic):
     root, _ = synthetic
     runs = {row["run"]: row for row in read_csv(root / "report" / "runs.csv")}
