@@ -18,7 +18,6 @@ import json
 import os
 import shlex
 import sys
-import warnings
 from collections import defaultdict
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -176,10 +175,8 @@ def aggregate(scores: dict[str, np.ndarray], reps: int, seed: int) -> dict[str, 
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_median(x), metrics.aggregate_mean(x),
                          metrics.aggregate_optimality_gap(x)])
 
-    np.random.seed(seed)  # rliable's StratifiedBootstrap draws from the global generator, not from random_state
-    with warnings.catch_warnings(action="ignore", category=FutureWarning):  # arch's note on rliable's RandomState
-        points, intervals = library.get_interval_estimates(scores, all_metrics, reps=reps,
-                                                           random_state=np.random.RandomState(seed))
+    np.random.seed(seed)  # rliable's StratifiedBootstrap draws from numpy's global generator (random_state unused)
+    points, intervals = library.get_interval_estimates(scores, all_metrics, reps=reps)
     return {key: {name: (float(points[key][i]), float(intervals[key][0, i]), float(intervals[key][1, i]))
                   for i, name in enumerate(METRICS)} for key in scores}
 
