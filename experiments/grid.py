@@ -229,6 +229,48 @@ PRESETS = {
         Grid(algorithms=("rime",), implementations=("reference",), teachers=("mistake",), budgets=("1000/100",),
              seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/rime-eps0.3",
              flags=CPU_PEBBLE + " --teacher-eps-mistake 0.3")),
+    # B-Pref's findings at CPU scale (docs/bpref.md): each block its own root; the oracle and mistake runs of
+    # walker-walk and the oracle runs of the other tasks are the kept runs of the presets above
+    "bpref-walker-teachers": (
+        "PEBBLE with the stoc, skip, equal and myopic teachers, walker-walk at the README's CPU scale (1000 labels), "
+        "5 seeds",
+        Grid(teachers=("stoc", "skip", "equal", "myopic"), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
+             ground_truth=False, root="runs/bpref-walker", flags=CPU_PEBBLE + " --checkpoint-every 10000")),
+    "bpref-walker-samplers": (
+        "PEBBLE (oracle) with the uniform, entropy, coverage and hybrid samplers, walker-walk at the README's CPU "
+        "scale, 5 seeds (disagreement: parity-pebble's runs)",
+        Grid(teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5), ground_truth=False,
+             samplers=("uniform", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"),
+             root="runs/bpref-walker", flags=CPU_PEBBLE)),
+    "bpref-walker-samplers-equal": (
+        "PEBBLE with the equal teacher and every sampler (the share of equal answers each receives), walker-walk at "
+        "the README's CPU scale, 3 seeds",
+        Grid(teachers=("equal",), budgets=("1000/100",), seeds=(1, 2, 3), ground_truth=False, samplers=SAMPLERS,
+             root="runs/bpref-walker", flags=CPU_PEBBLE)),
+    "bpref-walker-schedules": (
+        "PEBBLE (oracle) with the increase and decay schedules, walker-walk at the README's CPU scale, 5 seeds",
+        Grid(teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5), ground_truth=False,
+             schedules=("increase", "decay"), root="runs/bpref-walker", flags=CPU_PEBBLE)),
+    "bpref-walker-smoothing": (
+        "PEBBLE under the mistake teacher (eps 0.1) with label smoothing 0.1, walker-walk at the README's CPU scale, "
+        "5 seeds",
+        Grid(teachers=("mistake",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5), ground_truth=False,
+             root="runs/bpref-walker-smoothing", flags=CPU_PEBBLE + " --label-smoothing 0.1")),
+    "bpref-walker-prefppo": (
+        "PrefPPO with the stoc, mistake, skip, equal and myopic teachers, walker-walk 1M steps (parity-prefppo's "
+        "scale), 5 seeds",
+        Grid(algorithms=("prefppo",), teachers=("stoc", "mistake", "skip", "equal", "myopic"), budgets=("1000/100",),
+             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/bpref-walker-prefppo", flags=CPU_PREFPPO)),
+    "bpref-button-press": (
+        "PEBBLE with the stoc, mistake, skip, equal and myopic teachers, button-press at button-press-cpu's scale, "
+        "5 seeds",
+        Grid(env_ids=("button-press",), teachers=("stoc", "mistake", "skip", "equal", "myopic"), budgets=("900/50",),
+             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/bpref-button-press", flags=CPU_METAWORLD)),
+    "bpref-quadruped-walk": (
+        "PEBBLE with the stoc, mistake, skip and equal teachers, quadruped-walk at quadruped-walk-cpu's scale, "
+        "5 seeds",
+        Grid(env_ids=("quadruped-walk",), teachers=("stoc", "mistake", "skip", "equal"), budgets=("1000/100",),
+             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/bpref-quadruped-walk", flags=CPU_QUADRUPED)),
     "rime-mini-bpref": (
         "The mini B-Pref (six teachers + ground truth, 5 seeds) for RIME and for PEBBLE's default reward inputs",
         replace(MINI_BPREF, algorithms=("pebble", "rime"), root="runs/mini-bpref-rime")),
