@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import tyro
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,7 +96,7 @@ class Grid:
     gpus_per_run: float = 0.0
     """GPUs per run on Ray (e.g. 0.25: four runs share a GPU; add --flags='--cuda')"""
     dry_run: bool = False
-    """print what would run (start, resume or skip, with the commands) and stop"""
+    """print what would run (start, resume or skip, with the commands) and its core-hours, and stop"""
     retry_non_finite: bool = False
     """resume the runs that stopped on a non-finite value (exit code 3), once its cause is fixed"""
     progress_every: float = 60.0
@@ -427,6 +428,70 @@ def run_state(run_dir: Path) -> tuple[str, str]:
     return "partial", f"{where}, no checkpoint"
 
 
+# What sets a run's wall time, as (config.json key, flag): a kept run is alike when it agrees on every one the run sets
+COST_SETTINGS = (("env_id", "--env-id"), ("total_timesteps", "--total-timesteps"), ("hidden_dim", "--hidden-dim"),
+                 ("num_layers", "--num-layers"), ("batch_size", "--batch-size"),
+                 ("ground_truth_reward", "--ground-truth-reward"))
+
+
+def kept_runs(docs: Path) -> list[tuple[str, dict, float]]:
+    """(algorithm with the implementation's prefix, config, final wall time in seconds) of every run kept below
+    docs that reached its last step."""
+    kept = []
+    for config_path in sorted(docs.rglob("config.json")):
+        try:
+            config = json.loads(config_path.read_text())
+        except (OSError, ValueError):
+            continue
+        rows = read_eval(config_path.parent)
+        if not rows or rows[-1].get("wall_time") is None or rows[-1]["step"] < config.get("total_timesteps", 1):
+            continue
+        prefix = "reference__" if config.get("implementation") == "reference" else ""
+        algorithm = config.get("exp_name") or config_path.parent.name.removeprefix(prefix).split("__")[0]
+        kept.append((prefix + algorithm, config, rows[-1]["wall_time"]))
+    return kept
+
+
+def minutes_alike(run: Run, kept: list[tuple[str, dict, float]]) -> tuple[float, int] | None:
+    """(median wall minutes, how many) of the kept runs alike to this run, or None where none is."""
+    prefix = "" if run.implementation == "ours" else f"{run.implementation}__"
+    wanted = {}
+    for key, flag in COST_SETTINGS:
+        if flag == "--ground-truth-reward":
+            wanted[key] = flag in run.flags
+        elif flag in run.flags:
+            wanted[key] = type_of(run.flags[run.flags.index(flag) + 1])
+    walls = [wall for algorithm, config, wall in kept if algorithm == prefix + run.algorithm
+             and all(config.get(key, False) == value for key, value in wanted.items())]
+    return (float(np.median(walls)) / 60, len(walls)) if walls else None
+
+
+def type_of(text: str):
+    """A flag's value as the config.json holds it: an int where it is one, else the text."""
+    return int(text) if text.isdigit() else text
+
+
+def dry_run_cost(todo: list[tuple[Run, bool]], root: Path, cpus_per_run: int, docs: Path) -> list[str]:
+    """Lines that say what the runs to do will cost in core-hours, from the wall times of alike runs kept under
+    docs (a resumed run only its steps left)."""
+    kept, hours, unknown = kept_runs(docs), 0.0, []
+    for run, resume in todo:
+        alike = minutes_alike(run, kept)
+        if alike is None:
+            unknown.append(run.name)
+            continue
+        left = 1.0
+        if resume:
+            rows, config = read_eval(root / run.name), json.loads((root / run.name / "config.json").read_text())
+            left = 1 - (rows[-1]["step"] if rows else 0) / config["total_timesteps"]
+        hours += alike[0] * left * cpus_per_run / 60
+    lines = [f"# about {hours:.1f} core-hours for {len(todo) - len(unknown)} runs, from the median wall time of the "
+             f"kept runs alike under {docs.relative_to(ROOT) if docs.is_relative_to(ROOT) else docs}"]
+    if unknown:
+        lines.append(f"# no kept run alike, so no estimate, for {len(unknown)} runs: {', '.join(unknown)}")
+    return lines
+
+
 def load_spec(root: Path) -> dict:
     try:
         return json.loads((root / "grid.json").read_text())["runs"]
@@ -593,6 +658,7 @@ def run_grid(grid: Grid) -> int:
             command = shlex.join(["python", *run.command(root / run.name, resume)])
             log = shlex.quote(str(logs[run.name]))
             print(f"# {note}: {run.name}\nOMP_NUM_THREADS={threads} {command} >> {log} 2>&1")
+        print("\n".join(dry_run_cost(todo, root, threads, ROOT / "docs")))
         return 0
 
     (root / "logs").mkdir(parents=True, exist_ok=True)

@@ -8,6 +8,7 @@ import shlex
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -139,6 +140,85 @@ def test_dry_run_prints_every_command_and_starts_nothing(tmp_path):
     assert first[first.index("--output-dir") + 1] == str((tmp_path / "grid" / TEACHER_RUNS[0]).resolve())
     assert sum("--ground-truth-reward" in c for c in commands) == 4
     assert not (tmp_path / "grid").exists()
+
+
+def keep_run(docs, name, config, wall_time, last_step=None):
+    """A run as experiments/keep_runs.py keeps it: config.json and eval.csv, its last row at last_step."""
+    (docs / name).mkdir(parents=True)
+    (docs / name / "config.json").write_text(json.dumps(config))
+    step = config["total_timesteps"] if last_step is None else last_step
+    (docs / name / "eval.csv").write_text(f"step,episode_return,wall_time\n{step // 2},1.0,1.0\n{step},2.0,{wall_time}\n")
+
+
+def test_dry_run_cost_is_the_median_wall_time_of_alike_kept_runs_and_a_resume_costs_its_steps_left(tmp_path):
+    docs, root = tmp_path / "docs", tmp_path / "runs"
+    walker = {"exp_name": "pebble", "env_id": "walker-walk", "total_timesteps": 100000, "hidden_dim": 256,
+              "ground_truth_reward": False}
+    for seed, minutes in enumerate([20, 30, 70], 1):  # median 30 min
+        keep_run(docs, f"pebble_s{seed}", walker, minutes * 60)
+    keep_run(docs, "shorter", walker | {"total_timesteps": 40000}, 9999.0)  # other steps: not alike
+    keep_run(docs, "unfinished", walker, 9999.0, last_step=50000)  # never reached its last step: not counted
+    keep_run(docs, "sac", walker | {"ground_truth_reward": True}, 9999.0)  # the baseline: not alike to a teacher's
+    keep_run(docs, "rime", walker | {"exp_name": "rime"}, 9999.0)  # another algorithm
+    flags = ("--env-id", "walker-walk", "--seed", "1", "--teacher", "oracle", "--total-timesteps", "100000",
+             "--hidden-dim", "256")
+    new = grid.Run("new", "pebble", flags)
+    half = grid.Run("half", "pebble", flags)  # resumed at step 50000 of 100000: 15 min left
+    keep_run(root, "half", walker, 900.0, last_step=50000)
+    cheetah = grid.Run("cheetah", "pebble", ("--env-id", "cheetah-run", "--teacher", "oracle"))
+    lines = grid.dry_run_cost([(new, False), (half, True), (cheetah, False)], root, 2, docs)
+    assert lines[0].startswith("# about 1.5 core-hours for 2 runs")  # (30 + 15) min x 2 cores
+    assert lines[1] == "# no kept run alike, so no estimate, for 1 runs: cheetah"
+
+
+def test_dry_run_of_a_bpref_preset_estimates_its_core_hours_from_the_runs_kept_under_docs(tmp_path):
+    cmd = [sys.executable, str(ROOT / "experiments" / "grid.py"), "bpref-walker-teachers", "--root",
+           str(tmp_path / "grid"), "--dry-run"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    hours = float(result.stdout.splitlines()[-1].split()[2])
+    assert 20 * 15 / 60 < hours < 20 * 60 / 60  # 20 runs of 15-60 minutes each (walker-walk at CPU scale)
+
+
+def test_bpref_presets_vary_one_axis_of_the_kept_runs_they_are_compared_with():
+    """Each block of B-Pref's findings changes only its axis (teacher, sampler, schedule, label smoothing) from the
+    runs kept beside it: walker-walk's parity-pebble, button-press-cpu and quadruped-walk-cpu (oracle), rime-mistake
+    (mistake); --checkpoint-every changes no result."""
+    def flags(preset):
+        five_seeds = replace(grid.PRESETS[preset][1], seeds=(1, 2, 3, 4, 5))  # the kept runs' seeds
+        runs = [run for run in grid.expand(five_seeds) if "--teacher" in run.flags]
+        by_name = {}
+        for run in runs:
+            words = list(run.flags)
+            if "--checkpoint-every" in words:
+                del words[words.index("--checkpoint-every"):words.index("--checkpoint-every") + 2]
+            by_name[run.name] = tuple(words)
+        return by_name
+
+    oracle = flags("parity-pebble") | flags("button-press-cpu") | flags("quadruped-walk-cpu")
+    for preset in ("bpref-walker-teachers", "bpref-button-press", "bpref-quadruped-walk"):
+        for name, words in flags(preset).items():
+            teacher = words[words.index("--teacher") + 1]
+            base = tuple("oracle" if w == teacher else w for w in words)
+            assert base == oracle[name.replace(f"__{teacher}__", "__oracle__")], (preset, name)
+    for preset, option in (("bpref-walker-samplers", "--sampler"), ("bpref-walker-schedules", "--schedule")):
+        default = {"--sampler": "disagreement", "--schedule": "uniform"}[option]
+        for name, words in flags(preset).items():
+            at = words.index(option) + 1
+            base = words[:at] + (default,) + words[at + 1:]
+            assert base == oracle[name.replace(f"__{words[at]}__", f"__{default}__", 1)], (preset, name)
+    mistake = flags("rime-mistake")
+    for name, words in flags("bpref-walker-smoothing").items():
+        at = words.index("--label-smoothing")
+        assert words[at + 1] == "0.1" and words[:at] + words[at + 2:] == mistake[name]
+    equal = flags("bpref-walker-samplers-equal")
+    assert {words[words.index("--sampler") + 1] for words in equal.values()} == set(grid.SAMPLERS)
+    prefppo = flags("bpref-walker-prefppo")
+    parity = flags("parity-prefppo")
+    for name, words in prefppo.items():
+        teacher = words[words.index("--teacher") + 1]
+        base = tuple("oracle" if w == teacher else w for w in words)
+        assert base == parity[name.replace(f"__{teacher}__", "__oracle__")], name
 
 
 # ---------------------------------------------------------------- the tiny grid, run
