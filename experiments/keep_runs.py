@@ -1,6 +1,7 @@
 """Keep finished runs for the docs: what report.py reads of each, without checkpoints, models and label files.
 
-Per run, into a folder of the same name under --to: config.json and eval.csv; for a RIME run, its discriminator at
+Per run, into a folder of the same name under --to: config.json and eval.csv; the teacher's answers at every
+feedback session (queries, skipped, equal) as labels.csv, one row a session; for a RIME run, its discriminator at
 every feedback session (the label files' trusted, flipped, dropped, precision and recall) as discriminator.csv,
 one row a session, which report.py --compare reads when the labels are gone; with --events, the TensorBoard files
 too (report.py --parity reads their training episodes where the reference's PrefPPO is compared).
@@ -42,17 +43,35 @@ def discriminator_rows(labels: Path) -> list[dict]:
     return rows
 
 
+def answer_rows(labels: Path) -> list[dict]:
+    """A row per label file with the teacher's answers (y, keep): the session, its step, how many queries, how many
+    the teacher skipped and how many it called equally preferable (y = 0.5)."""
+    rows = []
+    for session, file in enumerate(sorted(labels.glob("session_*.npz"))):
+        with np.load(file) as data:
+            if "y" in data.files and "keep" in data.files:
+                keep = data["keep"].astype(bool)
+                rows.append({"session": session, "step": int(data["step"]), "queries": len(keep),
+                             "skipped": int((~keep).sum()), "equal": int((keep & (data["y"] == 0.5)).sum())})
+    return rows
+
+
+def write_rows(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def keep(run: Path, target: Path, events: bool) -> None:
     target.mkdir(parents=True, exist_ok=True)
     names = ["config.json", "eval.csv"] + ([path.name for path in run.glob("events.out.tfevents.*")] if events else [])
     for name in names:
         shutil.copy2(run / name, target / name)
-    rows = discriminator_rows(run / "labels")
-    if rows:
-        with open(target / "discriminator.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+    for name, rows in (("labels.csv", answer_rows(run / "labels")),
+                       ("discriminator.csv", discriminator_rows(run / "labels"))):
+        if rows:
+            write_rows(target / name, rows)
 
 
 def main(args: Args) -> None:

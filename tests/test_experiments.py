@@ -180,6 +180,23 @@ def test_dry_run_of_a_bpref_preset_estimates_its_core_hours_from_the_runs_kept_u
     assert 20 * 15 / 60 < hours < 20 * 60 / 60  # 20 runs of 15-60 minutes each (walker-walk at CPU scale)
 
 
+def test_keep_runs_counts_each_session_s_skipped_and_equal_answers_into_labels_csv(tmp_path):
+    run = tmp_path / "run"
+    keep_run(tmp_path, "run", {"total_timesteps": 100}, 5.0)
+    (run / "labels").mkdir()
+    nan = float("nan")  # a skipped query's label
+    np.savez(run / "labels" / "session_0000.npz", step=11, y=np.array([1.0, 0.5, nan, 0.0, 0.5]),
+             keep=np.array([True, True, False, True, True]))
+    np.savez(run / "labels" / "session_0001.npz", step=61, y=np.array([0.0, 1.0]), keep=np.array([True, True]))
+    kept = subprocess.run([sys.executable, str(ROOT / "experiments" / "keep_runs.py"), str(run), "--to",
+                           str(tmp_path / "kept")], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert kept.returncode == 0, kept.stderr[-2000:]
+    assert sorted(path.name for path in (tmp_path / "kept" / "run").iterdir()) == ["config.json", "eval.csv",
+                                                                                  "labels.csv"]
+    assert (tmp_path / "kept" / "run" / "labels.csv").read_text().splitlines() == [
+        "session,step,queries,skipped,equal", "0,11,5,1,2", "1,61,2,0,0"]
+
+
 def test_bpref_presets_vary_one_axis_of_the_kept_runs_they_are_compared_with():
     """Each block of B-Pref's findings changes only its axis (teacher, sampler, schedule, label smoothing) from the
     runs kept beside it: walker-walk's parity-pebble, button-press-cpu and quadruped-walk-cpu (oracle), rime-mistake
