@@ -258,10 +258,10 @@ PRESETS = {
         Grid(teachers=("mistake",), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5), ground_truth=False,
              root="runs/bpref-walker-smoothing", flags=CPU_PEBBLE + " --label-smoothing 0.1")),
     "bpref-walker-prefppo": (
-        "PrefPPO with the stoc, mistake, skip, equal and myopic teachers, walker-walk 1M steps (parity-prefppo's "
-        "scale), 5 seeds",
+        "PrefPPO with the stoc, mistake, skip, equal and myopic teachers and PPO on the true reward (the "
+        "normaliser), walker-walk 1M steps (parity-prefppo's scale), 5 seeds",
         Grid(algorithms=("prefppo",), teachers=("stoc", "mistake", "skip", "equal", "myopic"), budgets=("1000/100",),
-             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/bpref-walker-prefppo", flags=CPU_PREFPPO)),
+             seeds=(1, 2, 3, 4, 5), root="runs/bpref-walker-prefppo", flags=CPU_PREFPPO)),
     "bpref-button-press": (
         "PEBBLE with the stoc, mistake, skip, equal and myopic teachers, button-press at button-press-cpu's scale, "
         "5 seeds",
