@@ -1,0 +1,452 @@
+"""B-Pref's findings at CPU scale (docs/bpref.md), rebuilt from the runs kept under docs/: the findings table, one
+figure per task (normalised IQM per teacher, PEBBLE and PrefPPO side by side), the samplers', the schedules', and
+each block of runs with its grid preset and the core-hours it took. Docs: docs/bpref.md
+
+    python experiments/bpref.py          # rewrites the generated parts of docs/bpref.md and docs/bpref/*.png
+
+A block's runs are kept with `python experiments/keep_runs.py runs/<root>/<run>... --to docs/bpref/data/<folder>`;
+the oracle and mistake runs it is compared with are the ones kept for the parity, RIME and task reports.
+"""
+
+import csv
+import sys
+from collections import defaultdict
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import grid  # noqa: E402
+import report  # noqa: E402
+
+DOCS = ROOT / "docs"
+PAGE = DOCS / "bpref.md"
+FIGURES = DOCS / "bpref"
+DATA = FIGURES / "data"
+REPS, SEED = 2000, 0  # bootstrap replications and seed of every interval on the page
+SMOOTHED = "mistake, smoothing 0.1"  # the label-smoothing runs' teacher on the page
+# Where each task's runs are kept: the blocks' own folders first, then the runs they are compared with
+POOLS = {
+    "walker-walk": ("bpref/data/walker-walk", "bpref/data/walker-walk-smoothing", "bpref/data/walker-walk-prefppo",
+                    "parity/data/ours", "rime/data/eps0.1"),
+    "quadruped-walk": ("bpref/data/quadruped-walk", "tasks/data/quadruped-walk", "tasks/data/quadruped-walk-prefppo"),
+    "button-press": ("bpref/data/button-press", "tasks/data/button-press", "tasks/data/button-press-prefppo"),
+    "sweep-into": ("tasks/data/sweep-into-250k", "tasks/data/sweep-into-prefppo"),
+}
+MANIPULATION = ("button-press", "sweep-into")
+
+
+@dataclass(frozen=True)
+class Block:
+    letter: str
+    preset: str
+    folder: str
+    """under docs/bpref/data"""
+    what: str
+
+
+BLOCKS = (
+    Block("a", "bpref-walker-teachers", "walker-walk", "walker-walk, PEBBLE: stoc, skip, equal, myopic"),
+    Block("b", "bpref-walker-samplers", "walker-walk", "walker-walk, PEBBLE (oracle): five samplers"),
+    Block("b", "bpref-walker-samplers-equal", "walker-walk", "walker-walk, PEBBLE (equal): six samplers"),
+    Block("c", "bpref-walker-schedules", "walker-walk", "walker-walk, PEBBLE (oracle): increase, decay"),
+    Block("d", "bpref-walker-smoothing", "walker-walk-smoothing", "walker-walk, PEBBLE (mistake): smoothing 0.1"),
+    Block("e", "bpref-walker-prefppo", "walker-walk-prefppo", "walker-walk, PrefPPO: five teachers; PPO"),
+    Block("f", "bpref-button-press", "button-press", "button-press, PEBBLE: five teachers"),
+    Block("g", "bpref-quadruped-walk", "quadruped-walk", "quadruped-walk, PEBBLE: four teachers"),
+)
+
+
+# ---------------------------------------------------------------- the runs
+
+
+def load_pool(task: str) -> list[report.Run]:
+    """The finished runs of our code on a task from its folders, one per setting and seed (the first folder's where
+    two hold the same: fixed-seed runs repeat exactly), normalised by their algorithm's ground-truth runs."""
+    runs, seen = [], set()
+    for folder in POOLS[task]:
+        if not (DOCS / folder).is_dir():
+            continue
+        for run in report.find_runs(DOCS / folder, DOCS / folder / "report"):
+            if run.state != "finished" or run.setting[0] not in ("pebble", "prefppo") or run.setting[1] != task:
+                continue
+            if run.config.get("label_smoothing"):
+                run = replace(run, setting=run.setting[:2] + (f"{run.setting[2]}, smoothing "
+                                                              f"{run.config['label_smoothing']}",) + run.setting[3:])
+            key = (run.setting, run.config["seed"])
+            if key not in seen:
+                seen.add(key)
+                runs.append(run)
+    report.normalize(runs)
+    return runs
+
+
+def arm(runs, algorithm, teacher, sampler="disagreement", schedule="uniform") -> list[report.Run]:
+    return [r for r in runs if r.setting[0] == algorithm and r.setting[2] == teacher and r.setting[4] == sampler
+            and r.setting[5] == schedule and r.normalized is not None]
+
+
+def normalised(runs) -> np.ndarray:
+    return np.array([r.normalized for r in runs])
+
+
+@dataclass
+class Comparison:
+    new: np.ndarray
+    base: np.ndarray
+    difference: tuple[float, float, float]
+    welch_p: float
+    call: str
+    """higher, lower or none (no difference detected), by report.verdict's rule"""
+
+    def text(self) -> str:
+        point, low, high = self.difference
+        words = {"higher": "higher", "lower": "lower", "none": "no difference detected"}[self.call]
+        return f"{point:+.2f} [{low:+.2f}, {high:+.2f}], p = {self.welch_p:.2f}: {words}"
+
+
+def compare(new: np.ndarray, base: np.ndarray) -> Comparison | None:
+    """new - base with report.verdict's rule (bootstrap CI of the difference and Welch's test); None without two
+    runs a side."""
+    if min(len(new), len(base)) < 2:
+        return None
+    row = {"difference": report.difference_ci(new, base, REPS, SEED), "welch_p": report.welch_p(new, base),
+           "reference_final_mean": float(base.mean()), "metric": "episode_return"}
+    said = report.verdict(row)
+    call = "higher" if said.startswith("higher") else "lower" if said.startswith("lower") else "none"
+    return Comparison(new, base, row["difference"], row["welch_p"], call)
+
+
+def mean_text(values: np.ndarray) -> str:
+    return f"{values.mean():.2f} (n = {len(values)})"
+
+
+def pending(*presets: str) -> str:
+    return f"pending: runs of {', '.join(f'`{p}`' for p in presets)} not yet kept"
+
+
+# ---------------------------------------------------------------- the findings
+
+
+@dataclass
+class Finding:
+    key: str
+    claim: str
+    experiment: str
+    figure: str
+    numbers: list[str]
+    verdict: str
+
+
+def f1_pebble_above_prefppo(pools) -> Finding:
+    lines, calls = [], {}
+    for task, runs in pools.items():
+        pebble, prefppo = normalised(arm(runs, "pebble", "oracle")), normalised(arm(runs, "prefppo", "oracle"))
+        result = compare(pebble, prefppo)
+        if result is None:
+            lines.append(f"{task}: {pending('bpref-walker-prefppo') if task == 'walker-walk' else 'too few runs'}")
+            continue
+        calls[task] = result
+        lines.append(f"{task}: PEBBLE {mean_text(pebble)}, PrefPPO {mean_text(prefppo)}; PEBBLE - PrefPPO "
+                     f"{result.text()}")
+    higher = [task for task, c in calls.items() if c.call == "higher"]
+    lower = [task for task, c in calls.items() if c.call == "lower"]
+    widest = max(calls, key=lambda task: calls[task].difference[0]) if calls else None
+    if not calls:
+        verdict = "pending"
+    elif len(higher) > len(calls) / 2 and widest in MANIPULATION:
+        verdict = f"holds: PEBBLE higher on {len(higher)} of {len(calls)} tasks, most on {widest}"
+    elif len(lower) >= len(calls) / 2:
+        verdict = f"does not hold: PrefPPO higher on {len(lower)} of {len(calls)} tasks"
+    else:
+        verdict = (f"not detected at this scale: PEBBLE higher on {len(higher)} of {len(calls)} tasks "
+                   f"({', '.join(higher) or 'none'}), the widest gap on {widest}")
+    return Finding("F1", "PEBBLE above PrefPPO on most tasks, by most on manipulation",
+                   "oracle teacher, each task at its CPU scale (PEBBLE 100K-250K steps, PrefPPO 1M), each "
+                   "algorithm normalised by SAC / PPO on the true reward at its scale", "[tasks](#the-tasks)",
+                   lines, verdict)
+
+
+def f2_equal_and_skip_above_oracle(pools) -> Finding:
+    runs = pools["quadruped-walk"]
+    oracle = normalised(arm(runs, "pebble", "oracle"))
+    lines, calls = [], []
+    for teacher in ("equal", "skip"):
+        result = compare(normalised(arm(runs, "pebble", teacher)), oracle)
+        if result is None:
+            lines.append(f"{teacher}: {pending('bpref-quadruped-walk')}")
+            continue
+        calls.append(result.call)
+        lines.append(f"{teacher} {mean_text(result.new)} against the oracle's {mean_text(oracle)}: "
+                     f"{teacher} - oracle {result.text()}")
+    if len(calls) < 2:
+        verdict = "pending"
+    elif calls == ["higher", "higher"]:
+        verdict = "holds: both above the oracle"
+    elif "lower" in calls:
+        verdict = "does not hold: below the oracle"
+    else:
+        verdict = "not detected at this scale (the intervals beside)"
+    return Finding("F2", "on quadruped-walk, the equal and skip teachers above the oracle",
+                   "PEBBLE, quadruped-walk, 250K steps, 1000 labels", "[quadruped-walk](#the-tasks)", lines, verdict)
+
+
+def f3_mistake_and_stoc_hurt_most(pools) -> Finding:
+    lines, outcomes = [], []
+    for task, runs in pools.items():
+        for algorithm in ("pebble", "prefppo"):
+            means = {t: normalised(arm(runs, algorithm, t)) for t in report.TEACHERS}
+            if any(len(values) < 2 for values in means.values()):
+                continue
+            oracle = means["oracle"]
+            calls = {t: compare(values, oracle) for t, values in means.items() if t != "oracle"}
+            ranked = sorted(means, key=lambda t: means[t].mean())
+            worst_two = set(ranked[:2]) == {"mistake", "stoc"}
+            others_lower = [t for t in ("skip", "equal", "myopic") if calls[t].call == "lower"
+                            and means[t].mean() < max(means["mistake"].mean(), means["stoc"].mean())]
+            if worst_two and calls["mistake"].call == calls["stoc"].call == "lower":
+                outcomes.append("holds")
+            elif "higher" in (calls["mistake"].call, calls["stoc"].call) or others_lower:
+                outcomes.append("does not hold")
+            else:
+                outcomes.append("not detected")
+            lines.append(f"{task}, {algorithm}: lowest first {', '.join(f'{t} {means[t].mean():.2f}' for t in ranked)}"
+                         f"; mistake - oracle {calls['mistake'].text()}; stoc - oracle {calls['stoc'].text()}")
+    if not outcomes:
+        verdict = "pending"
+        lines.append(pending("bpref-walker-teachers", "bpref-walker-prefppo", "bpref-button-press",
+                             "bpref-quadruped-walk"))
+    elif all(o == "holds" for o in outcomes):
+        verdict = f"holds on all {len(outcomes)} task-algorithm pairs run with six teachers"
+    elif "does not hold" in outcomes:
+        verdict = f"does not hold on {outcomes.count('does not hold')} of {len(outcomes)} pairs"
+    else:
+        verdict = f"not detected at this scale on {outcomes.count('not detected')} of {len(outcomes)} pairs"
+    return Finding("F3", "the mistake and stoc teachers hurt both algorithms most",
+                   "the six teachers on each task and algorithm that ran all six", "[tasks](#the-tasks)", lines,
+                   verdict)
+
+
+def f4_uncertainty_samplers(pools, speed: dict[str, float]) -> Finding:
+    runs = pools["walker-walk"]
+    uniform = normalised(arm(runs, "pebble", "oracle", sampler="uniform"))
+    lines, calls = [], {}
+    for sampler in ("disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"):
+        result = compare(normalised(arm(runs, "pebble", "oracle", sampler=sampler)), uniform)
+        if result is None:
+            lines.append(f"{sampler}: {pending('bpref-walker-samplers')}")
+            continue
+        calls[sampler] = result.call
+        lines.append(f"{sampler} {mean_text(result.new)}, - uniform {result.text()}")
+    if speed:
+        lines.append("query selection per session, x disagreement's: " + ", ".join(
+            f"{sampler} {ratio:.2f}" for sampler, ratio in speed.items()))
+    if len(calls) < 5:
+        verdict = "pending"
+    else:
+        uncertainty_up = calls["disagreement"] == calls["entropy"] == "higher"
+        coverage_flat = calls["coverage"] != "higher"
+        slower = speed.get("coverage", 0) > 1
+        if uncertainty_up and coverage_flat and slower:
+            verdict = "holds"
+        elif "lower" in (calls["disagreement"], calls["entropy"]) or calls["coverage"] == "higher":
+            verdict = "does not hold"
+        else:
+            verdict = "not detected at this scale: " + ", ".join(f"{s} {c}" for s, c in calls.items())
+    return Finding("F4", "uncertainty samplers (disagreement, entropy) above uniform; coverage samplers no better "
+                   "than uniform, and slower", "PEBBLE (oracle), walker-walk, 100K steps, 1000 labels; seconds "
+                   "from benchmarks/sampler_speed.py", "[samplers](#samplers-and-schedules)", lines, verdict)
+
+
+def equal_share(run: report.Run) -> float | None:
+    """Share of the kept answers that were 'equally preferable', over the sessions after the first (the first
+    session samples uniformly whatever the sampler); None without labels.csv."""
+    path = run.path / "labels.csv"
+    if not path.exists():
+        return None
+    with open(path) as f:
+        rows = list(csv.DictReader(f))[1:]
+    answered = sum(int(r["queries"]) - int(r["skipped"]) for r in rows)
+    return sum(int(r["equal"]) for r in rows) / answered if answered else None
+
+
+def f4a_equal_answers(pools) -> Finding:
+    runs = pools["walker-walk"]
+    shares, returns = {}, {}
+    for sampler in ("uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"):
+        group = arm(runs, "pebble", "equal", sampler=sampler)
+        shares[sampler] = np.array([s for s in map(equal_share, group) if s is not None])
+        returns[sampler] = normalised(group)
+    lines, calls = [], {}
+    for sampler in shares:
+        if len(shares[sampler]) < 2:
+            lines.append(f"{sampler}: {pending('bpref-walker-samplers-equal')}")
+            continue
+        lines.append(f"{sampler}: equal answers {shares[sampler].mean():.1%}, normalised return "
+                     f"{mean_text(returns[sampler])}")
+    for sampler in ("disagreement", "entropy"):
+        share, learned = compare(shares[sampler], shares["uniform"]), compare(returns[sampler], returns["uniform"])
+        if share and learned:
+            calls[sampler] = (share.call, learned.call)
+            lines.append(f"{sampler} - uniform: equal share {share.text()}; return {learned.text()}")
+    if len(calls) < 2:
+        verdict = "pending"
+    elif all(c == ("higher", "higher") for c in calls.values()):
+        verdict = "holds"
+    elif any("lower" in c for c in calls.values()):
+        verdict = "does not hold"
+    else:
+        verdict = "not detected at this scale: " + ", ".join(f"{s}: share {a}, return {b}"
+                                                             for s, (a, b) in calls.items())
+    return Finding("F4a", "under the equal teacher, uncertainty samplers receive more equal answers yet learn more",
+                   "PEBBLE (equal), walker-walk, 100K steps, 1000 labels, 3 seeds; share over sessions 2-10",
+                   "[samplers](#samplers-and-schedules)", lines, verdict)
+
+
+def f5_schedules(pools) -> Finding:
+    runs = pools["walker-walk"]
+    uniform = normalised(arm(runs, "pebble", "oracle"))
+    lines, calls = [], []
+    for schedule in ("increase", "decay"):
+        result = compare(normalised(arm(runs, "pebble", "oracle", schedule=schedule)), uniform)
+        if result is None:
+            lines.append(f"{schedule}: {pending('bpref-walker-schedules')}")
+            continue
+        calls.append(result.call)
+        lines.append(f"{schedule} {mean_text(result.new)}, - uniform {result.text()}")
+    if len(calls) < 2:
+        verdict = "pending"
+    elif "higher" in calls:
+        verdict = "does not hold: a schedule above uniform"
+    else:
+        verdict = "holds: neither above uniform (the intervals beside)"
+    return Finding("F5", "increase and decay schedules no better than uniform at the same budget",
+                   "PEBBLE (oracle), walker-walk, 100K steps, 1000 labels", "[samplers](#samplers-and-schedules)",
+                   lines, verdict)
+
+
+def f6_alignment(pools) -> Finding:
+    lines, lows = [], {}
+    for task, runs in pools.items():
+        r = np.array([run.rows[-1]["reward_correlation"] for run in arm(runs, "pebble", "oracle")])
+        r = r[np.isfinite(r)]
+        if len(r) < 2:
+            continue
+        draws = np.random.default_rng(SEED).choice(r, (REPS, len(r))).mean(1)
+        low, high = np.percentile(draws, [2.5, 97.5])
+        lows[task] = low
+        lines.append(f"{task}: r = {r.mean():.2f} [{low:.2f}, {high:.2f}] (n = {len(r)})")
+    strong = [task for task, low in lows.items() if low > 0.5]
+    if not lows:
+        verdict = "pending"
+    elif len(strong) == len(lows):
+        verdict = "holds on every task (r's CI above 0.5)"
+    elif all(low > 0 for low in lows.values()):
+        verdict = (f"in part: strong on {', '.join(strong) or 'no task'} (r's CI above 0.5), weaker on "
+                   f"{', '.join(t for t in lows if t not in strong)} (r > 0, its CI reaching below 0.5)")
+    else:
+        verdict = "does not hold: r's CI reaches 0 on " + ", ".join(t for t, low in lows.items() if low <= 0)
+    return Finding("F6", "the learned reward is aligned with the true one (tanh-bounded, at another scale)",
+                   "PEBBLE (oracle), each task at its CPU scale: Pearson r of r_hat and the true reward per step "
+                   "over the last evaluation's 10 episodes", "[tasks](#the-tasks)", lines, verdict)
+
+
+def f7_label_smoothing(pools) -> Finding:
+    runs = pools["walker-walk"]
+    mistake = normalised(arm(runs, "pebble", "mistake"))
+    result = compare(normalised(arm(runs, "pebble", SMOOTHED)), mistake)
+    if result is None:
+        lines, verdict = [pending("bpref-walker-smoothing")], "pending"
+    else:
+        lines = [f"smoothing {mean_text(result.new)}, without {mean_text(mistake)}: smoothing - without "
+                 f"{result.text()}"]
+        verdict = "does not hold: smoothing helps" if result.call == "higher" else \
+            "holds: smoothing no better (the interval beside)"
+    return Finding("F7", "label smoothing does not help against wrong labels",
+                   "PEBBLE, mistake teacher (eps 0.1), walker-walk, 100K steps, 1000 labels", "-", lines, verdict)
+
+
+def sampler_speed() -> dict[str, float]:
+    """Query selection's seconds per session as a multiple of disagreement's, at 900 labelled pairs, from the kept
+    output of benchmarks/sampler_speed.py (docs/bpref/sampler_speed.md); {} without it."""
+    path = FIGURES / "sampler_speed.md"
+    if not path.exists():
+        return {}
+    ratios = {}
+    for line in path.read_text().splitlines():
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        if len(cells) == 5 and cells[0] in grid.SAMPLERS:
+            ratios[cells[0]] = float(cells[4])
+    return ratios
+
+
+# ---------------------------------------------------------------- figures and blocks
+
+
+def task_figures(pools) -> list[Path]:
+    """Per task, the paper's Figure 2: PEBBLE and PrefPPO per teacher (their budgets differ: set aside)."""
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for runs in pools.values():
+        default = [r for r in runs if r.setting[4:] == ("disagreement", "uniform") and r.setting[2] != SMOOTHED]
+        rows = [row | {"budget": "-"} for row in report.setting_aggregates(default, REPS, SEED)]
+        paths += report.bar_figures(rows, "teacher", "algorithm", ("task",), FIGURES, "teachers",
+                                    "IQM normalised return per teacher")
+    return paths
+
+
+def design_figures(pools) -> list[Path]:
+    """The samplers (oracle and equal teachers) and the schedules (oracle) on walker-walk."""
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    walker = [r for r in pools["walker-walk"] if r.setting[0] == "pebble"]
+    samplers = [r for r in walker if r.setting[5] == "uniform" and r.setting[2] in ("oracle", "equal")]
+    schedules = [r for r in walker if r.setting[4] == "disagreement" and r.setting[2] == "oracle"]
+    return (report.bar_figures(report.setting_aggregates(samplers, REPS, SEED), "sampler", "teacher", ("task",),
+                               FIGURES, "samplers", "IQM normalised return per sampler")
+            + report.bar_figures(report.setting_aggregates(schedules, REPS, SEED), "schedule", "teacher",
+                                 ("task",), FIGURES, "schedules", "IQM normalised return per schedule"))
+
+
+def block_rows() -> list[list[str]]:
+    """Per block: its preset, the runs kept of those it plans and the core-hours they took (one thread a run)."""
+    rows = []
+    for block in BLOCKS:
+        planned = [run.name for run in grid.expand(grid.PRESETS[block.preset][1])]
+        kept = [DATA / block.folder / name for name in planned if (DATA / block.folder / name / "eval.csv").exists()]
+        seconds = sum(grid.read_eval(path)[-1]["wall_time"] for path in kept)
+        rows.append([block.letter, block.what, f"`{block.preset}`", f"{len(kept)} of {len(planned)}",
+                     f"{seconds / 3600:.1f}"])
+    return rows
+
+
+def generated(pools) -> dict[str, list[str]]:
+    """The page's generated parts by name."""
+    found = [f1_pebble_above_prefppo(pools), f2_equal_and_skip_above_oracle(pools), f3_mistake_and_stoc_hurt_most(pools),
+             f4_uncertainty_samplers(pools, sampler_speed()), f4a_equal_answers(pools), f5_schedules(pools),
+             f6_alignment(pools), f7_label_smoothing(pools)]
+    holding = sum(f.verdict.startswith("holds") for f in found)
+    findings = [f"{holding} of {len(found)} findings hold at this scale.", ""]
+    findings += report.table(["", "finding", "experiment", "figure", "our numbers (95% CIs)", "verdict"],
+                             [[f.key, f.claim, f.experiment, f.figure, "<br>".join(f.numbers), f.verdict]
+                              for f in found])
+    blocks = report.table(["block", "runs", "preset", "kept", "core-hours"], block_rows())
+    return {"findings": findings, "blocks": blocks,
+            "task-figures": [f"![{path.stem}](bpref/{path.name})" for path in task_figures(pools)],
+            "design-figures": [f"![{path.stem}](bpref/{path.name})" for path in design_figures(pools)]}
+
+
+def write_page(parts: dict[str, list[str]], page: Path = PAGE) -> None:
+    """Replaces what stands between each part's markers in the page."""
+    text = page.read_text()
+    for name, lines in parts.items():
+        begin, end = f"<!-- generated by experiments/bpref.py: {name} -->", f"<!-- end of {name} -->"
+        head, rest = text.split(begin)
+        text = head + begin + "\n" + "\n".join(lines) + "\n" + end + rest.split(end, 1)[1]
+    page.write_text(text)
+
+
+if __name__ == "__main__":
+    write_page(generated({task: load_pool(task) for task in POOLS}))

@@ -1,0 +1,109 @@
+"""experiments/bpref.py: B-Pref's findings from kept runs whose right verdicts are known by construction, and the
+committed docs/bpref.md equals its rebuild from the runs kept under docs/."""
+
+import json
+import shutil
+
+import pytest
+
+import bpref
+from tests.helpers import ROOT
+
+
+def keep(folder, name, seed, final, teacher="oracle", sampler="disagreement", schedule="uniform", truth=False,
+         smoothing=0.0, shares=None):
+    """A kept walker-walk PEBBLE run (config.json, eval.csv; labels.csv with the equal answers of `shares`, one
+    number a session, 10 queries each)."""
+    path = folder / name
+    path.mkdir(parents=True)
+    config = {"exp_name": "pebble", "env_id": "walker-walk", "seed": seed, "teacher": teacher, "sampler": sampler,
+              "schedule": schedule, "max_feedback": 1000, "feedback_per_session": 100, "ground_truth_reward": truth,
+              "total_timesteps": 100000, "label_smoothing": smoothing}
+    (path / "config.json").write_text(json.dumps(config))
+    (path / "eval.csv").write_text("step,episode_return,success_rate,reward_correlation,wall_time\n"
+                                   f"50000,10.0,0.0,0.5,600\n100000,{final},0.0,0.8,1200\n")
+    if shares is not None:
+        rows = [f"{i},{10001 + 9000 * i},10,0,{round(10 * share)}" for i, share in enumerate(shares)]
+        (path / "labels.csv").write_text("session,step,queries,skipped,equal\n" + "\n".join(rows) + "\n")
+
+
+@pytest.fixture
+def walker(tmp_path, monkeypatch):
+    """SAC 1000; oracle with disagreement 900-940, entropy 880-920, uniform 500-520, the coverage samplers about
+    uniform's; schedules increase 400-420 (lower), decay 890-950 (level); mistake 400-420, with smoothing 700-720;
+    the equal teacher: uniform samples 10-20% equal answers after its first session and ends at 510-530,
+    disagreement and entropy 30-50% and 920-960."""
+    data = tmp_path / "data"
+    finals = {("oracle", "disagreement", "uniform"): (900, 920, 940), ("oracle", "entropy", "uniform"): (880, 900, 920),
+              ("oracle", "uniform", "uniform"): (500, 510, 520), ("oracle", "coverage", "uniform"): (500, 520, 540),
+              ("oracle", "disagreement-coverage", "uniform"): (505, 515, 525),
+              ("oracle", "entropy-coverage", "uniform"): (495, 515, 535),
+              ("oracle", "disagreement", "increase"): (400, 410, 420),
+              ("oracle", "disagreement", "decay"): (890, 900, 950), ("mistake", "disagreement", "uniform"): (400, 410, 420)}
+    for (teacher, sampler, schedule), values in finals.items():
+        for seed, final in enumerate(values, 1):
+            keep(data, f"{teacher}_{sampler}_{schedule}_{seed}", seed, final, teacher, sampler, schedule)
+    for seed, final in enumerate((1000, 990, 1010), 1):
+        keep(data, f"sac_{seed}", seed, final, truth=True)
+        keep(data, f"smoothing_{seed}", seed, 690 + 10 * seed, "mistake", smoothing=0.1)
+        keep(data, f"equal_uniform_{seed}", seed, 500 + 10 * seed, "equal", "uniform",
+             shares=[0.9] + [(0.1, 0.2, 0.1)[seed - 1]] * 9)
+        for sampler in ("disagreement", "entropy"):
+            keep(data, f"equal_{sampler}_{seed}", seed, 900 + 20 * seed, "equal", sampler,
+                 shares=[0.1] + [0.2 + 0.1 * seed] * 9)
+    monkeypatch.setattr(bpref, "DOCS", tmp_path)
+    monkeypatch.setattr(bpref, "POOLS", {"walker-walk": ("data",)})
+    return {"walker-walk": bpref.load_pool("walker-walk")}
+
+
+def test_uncertainty_samplers_above_uniform_and_coverage_level_and_slower_is_f4_holding(walker):
+    finding = bpref.f4_uncertainty_samplers(walker, {"coverage": 1.3})
+    assert finding.verdict == "holds"
+    assert any(line.startswith("disagreement 0.92 (n = 3), - uniform +0.41 [") and line.endswith(": higher")
+               for line in finding.numbers)
+    assert any(line.startswith("coverage") and line.endswith("no difference detected") for line in finding.numbers)
+    assert bpref.f4_uncertainty_samplers(walker, {"coverage": 0.9}).verdict.startswith("not detected")  # not slower
+
+
+def test_a_schedule_below_and_one_level_with_uniform_is_f5_holding(walker):
+    finding = bpref.f5_schedules(walker)
+    assert finding.verdict.startswith("holds")
+    assert finding.numbers[0].endswith(": lower") and finding.numbers[1].endswith("no difference detected")
+
+
+def test_smoothing_that_lifts_the_mistake_teacher_s_runs_is_f7_not_holding(walker):
+    finding = bpref.f7_label_smoothing(walker)
+    assert finding.verdict == "does not hold: smoothing helps"
+    assert finding.numbers[0].startswith("smoothing 0.71 (n = 3), without 0.41 (n = 3)")
+
+
+def test_equal_answers_are_counted_after_the_uniform_first_session(walker):
+    finding = bpref.f4a_equal_answers(walker)
+    assert "uniform: equal answers 13.3%, normalised return 0.52 (n = 3)" in finding.numbers
+    assert "entropy: equal answers 40.0%, normalised return 0.94 (n = 3)" in finding.numbers
+    assert finding.verdict == "holds"
+
+
+def test_findings_without_their_runs_are_pending(walker):
+    assert bpref.f2_equal_and_skip_above_oracle(walker | {"quadruped-walk": []}).verdict == "pending"
+    assert bpref.f3_mistake_and_stoc_hurt_most(walker).verdict == "pending"  # stoc, skip, myopic never ran
+
+
+def test_write_page_replaces_only_what_stands_between_the_markers(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("top\n<!-- generated by experiments/bpref.py: a -->\nold\n<!-- end of a -->\nbottom\n")
+    bpref.write_page({"a": ["new", "lines"]}, page)
+    assert page.read_text() == ("top\n<!-- generated by experiments/bpref.py: a -->\nnew\nlines\n<!-- end of a -->\n"
+                                "bottom\n")
+
+
+def test_the_committed_page_is_its_rebuild_from_the_kept_runs(tmp_path, monkeypatch):
+    page = tmp_path / "bpref.md"
+    shutil.copy(ROOT / "docs" / "bpref.md", page)
+    monkeypatch.setattr(bpref, "FIGURES", tmp_path / "bpref")  # the figures drawn here, not into docs/
+    (tmp_path / "bpref").mkdir()
+    shutil.copy(ROOT / "docs" / "bpref" / "sampler_speed.md", tmp_path / "bpref")
+    bpref.write_page(bpref.generated({task: bpref.load_pool(task) for task in bpref.POOLS}), page)
+    assert page.read_text() == (ROOT / "docs" / "bpref.md").read_text()
+    assert sorted(p.name for p in (tmp_path / "bpref").glob("*.png")) == sorted(
+        p.name for p in (ROOT / "docs" / "bpref").glob("*.png"))
