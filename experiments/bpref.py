@@ -102,9 +102,18 @@ class Comparison:
     call: str
     """higher, lower or none (no difference detected), by report.verdict's rule"""
 
+    def seeds_needed(self) -> int:
+        """Seeds a side that would detect a gap of this size with 80% power at the 5% level (the normal
+        approximation of a two-sample test, the arms' pooled standard deviation)."""
+        spread = np.sqrt((self.new.var(ddof=1) + self.base.var(ddof=1)) / 2)
+        gap = abs(self.difference[0])
+        return int(np.ceil(2 * ((1.96 + 0.84) * spread / gap) ** 2)) if gap > 0 else 10 ** 6
+
     def text(self) -> str:
         point, low, high = self.difference
         words = {"higher": "higher", "lower": "lower", "none": "no difference detected"}[self.call]
+        if self.call == "none" and self.seeds_needed() <= 15:
+            words += f" (about {self.seeds_needed()} seeds a side would detect a gap this size)"
         return f"{point:+.2f} [{low:+.2f}, {high:+.2f}], p = {self.welch_p:.2f}: {words}"
 
 

@@ -4,6 +4,7 @@ committed docs/bpref.md equals its rebuild from the runs kept under docs/."""
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 import bpref
@@ -62,13 +63,17 @@ def test_uncertainty_samplers_above_uniform_and_coverage_level_and_slower_is_f4_
     assert any(line.startswith("disagreement 0.92 (n = 3), - uniform +0.41 [") and line.endswith(": higher")
                for line in finding.numbers)
     assert any(line.startswith("coverage") and line.endswith("no difference detected") for line in finding.numbers)
+    # coverage - uniform: +0.015, pooled spread 0.016: 2 x (2.8 x 0.016 / 0.015)^2 = 18 seeds, too many to say
+    assert not any("seeds a side would" in line for line in finding.numbers)
     assert bpref.f4_uncertainty_samplers(walker, {"coverage": 0.9}).verdict.startswith("not detected")  # not slower
 
 
 def test_a_schedule_below_and_one_level_with_uniform_is_f5_holding(walker):
     finding = bpref.f5_schedules(walker)
     assert finding.verdict.startswith("holds")
-    assert finding.numbers[0].endswith(": lower") and finding.numbers[1].endswith("no difference detected")
+    assert finding.numbers[0].endswith(": lower")
+    # decay - uniform: +0.0067, pooled spread 0.027: 2 x (2.8 x 0.027 / 0.0067)^2 = 253 seeds: not said
+    assert finding.numbers[1].endswith("no difference detected")
 
 
 def test_smoothing_that_lifts_the_mistake_teacher_s_runs_is_f7_not_holding(walker):
@@ -82,6 +87,13 @@ def test_equal_answers_are_counted_after_the_uniform_first_session(walker):
     assert "uniform: equal answers 13.3%, normalised return 0.52 (n = 3)" in finding.numbers
     assert "entropy: equal answers 40.0%, normalised return 0.94 (n = 3)" in finding.numbers
     assert finding.verdict == "holds"
+
+
+def test_an_undecided_gap_says_how_many_seeds_would_detect_it():
+    result = bpref.compare(np.array([1.0, 1.2, 1.4]), np.array([0.8, 1.0, 1.2]))  # gap 0.2, spread 0.2
+    assert result.call == "none" and result.seeds_needed() == 16  # 2 x (2.8 x 0.2 / 0.2)^2 = 15.7
+    result = bpref.compare(np.array([1.0, 1.2, 1.4]), np.array([0.7, 0.9, 1.1]))  # gap 0.3: 7.0 -> 7
+    assert result.text().endswith("no difference detected (about 7 seeds a side would detect a gap this size)")
 
 
 def test_findings_without_their_runs_are_pending(walker):
