@@ -554,11 +554,16 @@ def test_a_verdict_is_higher_lower_or_no_difference_detected_and_level_only_with
     rate = {"difference": (0.267, 0.0, 0.8), "reference_final_mean": 0.733, "welch_p": 0.42, "metric": "success_rate"}
     assert report.verdict(rate) == ("no difference detected: ours - reference = +0.27, 95% CI [+0.00, +0.80], Welch p "
                                     "= 0.420")  # a success rate with two decimals
-    # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): no verdict either way
+    # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): said in those words
     row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134,
            "metric": "episode_return"}
-    assert report.verdict(row).startswith("no difference detected: ours - reference = -176.7")
-    assert report.verdict(row).endswith("(the bootstrap CI excludes 0, Welch's test does not: more seeds needed)")
+    assert report.verdict_word(row) == "lower by the CI, not by Welch's test"
+    assert report.verdict(row).startswith("lower by the CI, not by Welch's test: ours - reference = -176.7")
+    assert report.verdict(row).endswith("(Welch's p >= 0.05: more seeds needed)")
+    assert report.verdict_word(row | {"difference": (176.7, 26.7, 320.0)}) == "higher by the CI, not by Welch's test"
+    assert report.verdict_word(row | {"welch_p": 0.049}) == "lower"
+    assert report.verdict_word(wide) == "no difference detected"
+    assert report.verdict_word(narrow | {"welch_p": 0.5}) == "no difference detected, level"
     one_each = row | {"difference": (-50.0, -50.0, -50.0), "welch_p": report.welch_p(np.array([550.0]), np.array([600.0]))}
     assert report.verdict(one_each).endswith("(a single run on a side: no test; more seeds needed)")
 
