@@ -117,12 +117,14 @@ def setting_of(config: dict) -> tuple:
 
 
 def find_runs(root: Path, out: Path) -> list[Run]:
-    """Every folder below root with a config.json, except hidden ones (the grid's .aside/) and the report's."""
+    """Every folder below root with a config.json, except hidden ones (the grid's .aside/) and the report's, where
+    the report goes below root (a report beside the kept runs, as docs/parity/ beside docs/parity/data, reads them)."""
     runs = []
     for config_path in sorted(root.rglob("config.json")):
         path = config_path.parent
         relative = path.relative_to(root).parts
-        if any(part.startswith(".") for part in relative) or path == out or out in path.parents:
+        in_report = root in out.parents and (path == out or out in path.parents)
+        if any(part.startswith(".") for part in relative) or in_report:
             continue
         try:
             config = json.loads(config_path.read_text())
@@ -766,7 +768,7 @@ def parity_markdown(rows: list[dict], figures: list[Path], pooled: list[dict], t
              "are narrower than they should be: Welch's p is given beside it). Wall time: minutes per run as "
              "recorded at its last evaluation, both one thread per run, two runs at a time on the same machine. The rerun "
              "and what was checked where the two part: [benchmarks/reference](../benchmarks/reference/README.md), "
-             "[results.md](results.md#parity-with-the-reference-code).", ""]
+             "[results.md](results.md#does-it-learn-like-the-reference-code).", ""]
     for row, figure in zip(rows, figures):
         measure = f": {row['metric'].replace('_', ' ')}" if is_metaworld(row["task"]) else ""
         lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
@@ -809,8 +811,13 @@ PAPER_TASKS = {"walker-walk": ("docs/parity/data",),
                "quadruped-walk": ("docs/tasks/data/quadruped-walk", "docs/tasks/data/quadruped-walk-prefppo"),
                "button-press": ("docs/tasks/data/button-press", "docs/tasks/data/button-press-prefppo"),
                "sweep-into": ("docs/tasks/data/sweep-into-250k", "docs/tasks/data/sweep-into-prefppo")}
+# the CPU-scale runs timed in results.md
+RUN_TIME_FOLDERS = ("docs/parity/data", "docs/rime/data/oracle", "docs/tasks/data/quadruped-walk",
+                    "docs/tasks/data/quadruped-walk-prefppo", "docs/tasks/data/button-press",
+                    "docs/tasks/data/button-press-prefppo", "docs/tasks/data/sweep-into-250k",
+                    "docs/tasks/data/sweep-into-prefppo")
 # each preference setting against its algorithm's runs on the true reward, folder by folder
-TRUE_REWARD_FOLDERS = (("docs/parity/data/ours", "docs/rime/data/eps0.1"), ("docs/tasks/data/quadruped-walk",),
+TRUE_REWARD_FOLDERS = (("docs/parity/data/ours",), ("docs/tasks/data/quadruped-walk",),
                        ("docs/tasks/data/button-press",), ("docs/tasks/data/sweep-into-250k",),
                        ("docs/tasks/data/sweep-into",), ("docs/tasks/data/quadruped-walk-prefppo",),
                        ("docs/tasks/data/button-press-prefppo",), ("docs/tasks/data/sweep-into-prefppo",))
@@ -871,6 +878,8 @@ def difference_text(row: dict) -> str:
 
 def teacher_text(teacher: str) -> str:
     """A teacher's name as report.py writes it, in words: mistake(eps_mistake=0.3) is mistake, eps_mistake 0.3."""
+    if teacher == GROUND_TRUTH:
+        return "true reward"
     return teacher.replace("(", ", ").replace("=", " ").removesuffix(")")
 
 
@@ -934,7 +943,8 @@ def true_reward_table() -> str:
         for setting, new, base in ground_truth_pairs(kept_runs(*folders)):
             row = difference_row(new, base)
             labels = setting[3].split("/")[0]
-            rows.append([f"{setting[1]}, {steps(new[0])}", f"{arm_name(new[0])}, {setting[2]}, {labels} labels",
+            preferences = f"{arm_name(new[0])}, {teacher_text(setting[2])}, {labels} labels"
+            rows.append([f"{setting[1]}, {steps(new[0])}", preferences,
                          arm_name(base[0]), measure(row), spread(new), spread(base), difference_text(row),
                          verdict_word(row)])
     return "\n".join(table(["task, steps", "preferences", "true reward", "measure", "preferences: final",
@@ -943,15 +953,14 @@ def true_reward_table() -> str:
 
 def parity_table() -> str:
     """results.md: ours against the reference code on every setting both ran (PrefPPO on training episodes)."""
-    pairs = (parity_pairs(kept_runs("docs/parity/data", "docs/rime/data/eps0.1"))
-             + parity_pairs(kept_runs("docs/tasks/data/button-press")))
+    pairs = parity_pairs(kept_runs("docs/parity/data")) + parity_pairs(kept_runs("docs/tasks/data/button-press"))
     pairs += [(setting, by_return(ours), by_return(reference)) for setting, ours, reference in pairs
               if ours[0].metric == "success_rate"]
     rows = []
     for setting, ours, reference in pairs:
         row = difference_row(ours, reference)
         episodes = " (training episodes)" if on_training_episodes(reference[0]) else ""
-        rows.append([f"{arm_name(ours[0])}, {setting[1]}, {steps(ours[0])}", setting[2],
+        rows.append([f"{arm_name(ours[0])}, {setting[1]}, {steps(ours[0])}", teacher_text(setting[2]),
                      measure(row) + episodes, spread(ours), spread(reference), difference_text(row),
                      verdict_word(row)])
     return "\n".join(table(["algorithm, task, steps", "teacher", "measure", "ours", "reference code",
@@ -985,8 +994,9 @@ def rime_table() -> str:
             for setting, new, others in compare_pairs(runs, "rime", base):
                 others = same_seeds(new, others)
                 row = difference_row(new, others)
-                rows.append([f"{teacher_text(setting[2])}, {steps(new[0])}", arm_name(others[0]), spread(new), spread(others),
-                             difference_text(row), verdict_word(row), f"{minutes(new)} / {minutes(others)}"])
+                rows.append([f"{teacher_text(setting[2])}, {steps(new[0])}", arm_name(others[0]), spread(new),
+                             spread(others), difference_text(row), verdict_word(row),
+                             f"{minutes(new)} / {minutes(others)}"])
     return "\n".join(table(["walker-walk: teacher, steps", "against", "rime.py", "the other", "rime.py - the other "
                             "[95% CI], Welch p", "verdict", "minutes per run (rime.py / the other)"], rows))
 
@@ -1002,10 +1012,36 @@ def teachers_table() -> str:
         row = difference_row(rime, pebble)
         normalised = ["{0:.2f} [{1:.2f}, {2:.2f}]".format(*iqm[name + setting[2]]) if name + setting[2] in iqm
                       else "1 (the denominator)" for name in ("pebble", "rime")]
-        rows.append([setting[2], spread(pebble), normalised[0], spread(rime), normalised[1], difference_text(row),
-                     verdict_word(row)])
+        rows.append([teacher_text(setting[2]), spread(pebble), normalised[0], spread(rime), normalised[1],
+                     difference_text(row), verdict_word(row)])
     return "\n".join(table(["teacher", "pebble.py", "normalised IQM [95% CI]", "rime.py", "normalised IQM [95% CI]",
                             "rime.py - pebble.py [95% CI], Welch p", "verdict"], rows))
+
+
+def run_times_table() -> str:
+    """results.md: minutes per run at CPU scale (one thread a run), and the first command's run on a GPU, projected
+    from its first blocks of 10K steps (the last block's rate for the rest, as benchmarks/card_speed.py does)."""
+    groups = defaultdict(list)
+    for run in kept_runs(*RUN_TIME_FOLDERS):
+        if run.setting[2] in ("oracle", GROUND_TRUTH):
+            groups[run.setting[1], arm_name(run)].append(run)
+    rows = []
+    order = {key: (key[0], group[0].config["total_timesteps"], key[1]) for key, group in groups.items()}
+    for (task, name), group in sorted(groups.items(), key=lambda item: order[item[0]]):
+        wall = np.array([run.rows[-1]["wall_time"] for run in group]) / 60
+        size = f"{group[0].config['hidden_dim']} x {group[0].config['num_layers']}"
+        rows.append([task, name, steps(group[0]), size, "2-core CPU", len(group),
+                     f"{np.median(wall):.0f} ({wall.min():.0f}-{wall.max():.0f})"])
+    card = ROOT / "docs/tasks/data/card-h200"
+    config = json.loads((card / "config.json").read_text())
+    before, last = read_eval(card)[-2:]
+    seconds_per_step = (last["wall_time"] - before["wall_time"]) / (last["step"] - before["step"])
+    projected = last["wall_time"] + (config["total_timesteps"] - last["step"]) * seconds_per_step
+    rows.append([config["env_id"], f"PEBBLE, {config['teacher']} (the first command)", "1M",
+                 f"{config['hidden_dim']} x {config['num_layers']}", "one NVIDIA H200", 1,
+                 f"{projected / 60:.0f} (projected from its first {last['step'] // 1000:.0f}K steps)"])
+    return "\n".join(table(["task", "arm", "steps", "networks", "machine", "runs", "minutes per run: median (range)"],
+                           rows))
 
 
 def script_size_table() -> str:
@@ -1024,6 +1060,13 @@ def script_size_table() -> str:
 
 DOCS_BLOCKS = [  # (page, block name, the function that writes the block)
     ("README.md", "results-at-a-glance", glance_table),
+    ("docs/results.md", "parity", parity_table),
+    ("docs/results.md", "prefppo-defects", prefppo_defects_table),
+    ("docs/results.md", "against-the-true-reward", true_reward_table),
+    ("docs/results.md", "teachers", teachers_table),
+    ("docs/results.md", "rime", rime_table),
+    ("docs/results.md", "run-times", run_times_table),
+    ("docs/results.md", "script-size", script_size_table),
 ]
 DOCS_FIGURES = [("docs/tasks/pebble_against_sac.png", pebble_sac_figure)]
 
@@ -1171,8 +1214,8 @@ def report(args: Args) -> Path:
     lines = [f"# B-Pref report: {root.name}", "",
              f"{len(runs)} runs found in `{from_repository(root)}`, {len(finished)} finished. Normalised return = "
              "final evaluation return (Meta-World: success rate) / mean of the same over the finished ground-truth "
-             f"runs of the same algorithm on the task. Aggregates over seeds with 95% stratified bootstrap CIs (rliable, {args.reps} "
-             "replications); optimality gap = mean shortfall below 1.", ""]
+             "runs of the same algorithm on the task. Aggregates over seeds with 95% stratified bootstrap CIs "
+             f"(rliable, {args.reps} replications); optimality gap = mean shortfall below 1.", ""]
     if settings:
         lines += ["## Normalised return per setting", ""]
         lines += table(["algorithm", "task", "teacher", "budget", "sampler", "schedule", "runs", "IQM", "median",
