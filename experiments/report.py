@@ -1044,6 +1044,26 @@ def run_times_table() -> str:
                            rows))
 
 
+def raw_inputs_table() -> str:
+    """differences.md: pebble.py's reward inputs standardised (the default) or raw (the reference's way), beside the
+    reference code, each on the seeds the raw arm ran; final return, then the final reward correlation."""
+    raw = kept_runs("docs/ablations/pebble-raw-reward-inputs")
+    others = kept_runs("docs/parity/data")
+    rows = []
+    for setting in sorted({run.setting for run in raw}, key=sort_key):
+        raw_runs = [run for run in raw if run.setting == setting]
+        standardised = same_seeds(raw_runs, arm(others, "pebble", *setting[1:3]))
+        reference = same_seeds(raw_runs, arm(others, "reference-pebble", *setting[1:3]))
+        row = difference_row(standardised, raw_runs)
+        correlations = [f"{np.mean([run.rows[-1]['reward_correlation'] for run in group]):.2f}"
+                        for group in (standardised, raw_runs, reference)]
+        rows.append([f"{setting[1]}, {teacher_text(setting[2])}", spread(standardised), spread(raw_runs),
+                     spread(reference), f"{difference_text(row)}: {verdict_word(row)}", " / ".join(correlations)])
+    return "\n".join(table(["pebble.py, 100K steps", "standardised (the default)", "raw", "reference code",
+                            "standardised - raw [95% CI], Welch p: verdict",
+                            "final reward correlation (standardised / raw / reference)"], rows))
+
+
 def script_size_table() -> str:
     """results.md: the algorithm scripts' size as benchmarks/script_size.py counts it, part by part."""
     from benchmarks import script_size
@@ -1066,17 +1086,21 @@ DOCS_BLOCKS = [  # (page, block name, the function that writes the block)
     ("docs/results.md", "teachers", teachers_table),
     ("docs/results.md", "rime", rime_table),
     ("docs/results.md", "run-times", run_times_table),
+    ("docs/differences.md", "raw-reward-inputs", raw_inputs_table),
     ("docs/results.md", "script-size", script_size_table),
 ]
 DOCS_FIGURES = [("docs/tasks/pebble_against_sac.png", pebble_sac_figure)]
 
 
-def block_span(text: str, name: str, page: str) -> tuple[int, int]:
-    """Where a block's lines start and end in its page: between its two markers, each there once."""
+def block_span(text: str, name: str, page: str) -> tuple[int, int, str]:
+    """Where a block's lines start and end in its page (between its two markers, each there once) and the indent of
+    its begin marker, which every line of the block takes (a block inside a list item)."""
     begin, end = BEGIN.format(name=name), END.format(name=name)
     if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
         raise ReportError(f"{page}: block {name!r} needs its two markers once each, in order: {begin} ... {end}")
-    return text.index(begin) + len(begin), text.index(end)
+    start = text.index(begin)
+    indent = text[text.rfind("\n", 0, start) + 1:start]
+    return start + len(begin), text.index(end) - len(indent), indent
 
 
 def rebuilt_pages(blocks: list = DOCS_BLOCKS) -> dict[Path, str]:
@@ -1085,8 +1109,9 @@ def rebuilt_pages(blocks: list = DOCS_BLOCKS) -> dict[Path, str]:
     for page, name, make in blocks:
         path = ROOT / page
         text = pages[path] if path in pages else path.read_text()
-        start, end = block_span(text, name, page)
-        pages[path] = f"{text[:start]}\n{make()}\n{text[end:]}"
+        start, end, indent = block_span(text, name, page)
+        lines = "".join(f"{indent}{line}\n" for line in make().splitlines())
+        pages[path] = f"{text[:start]}\n{lines}{text[end:]}"
     return pages
 
 
