@@ -116,6 +116,14 @@ def setting_of(config: dict) -> tuple:
     return algorithm, task, teacher, budget, config["sampler"], config["schedule"]
 
 
+def kept_run_end(config: dict) -> float:
+    """The step a run kept without its final_model.pt (the data committed in docs/) has evaluated to once finished:
+    its total steps; the reference PrefPPO's rows are training episodes, whose last wave ends in the last rollout."""
+    if config.get("episode_returns") == "training":
+        return config["total_timesteps"] - config["num_envs"] * config["num_steps"]
+    return config.get("total_timesteps", float("inf"))
+
+
 def find_runs(root: Path, out: Path) -> list[Run]:
     """Every folder below root with a config.json, except hidden ones (the grid's .aside/) and the report's, where
     the report goes below root (a report beside the kept runs, as docs/parity/ beside docs/parity/data, reads them)."""
@@ -135,12 +143,7 @@ def find_runs(root: Path, out: Path) -> list[Run]:
         state, detail = run_state(path)
         metric = "success_rate" if is_metaworld(config["env_id"]) else "episode_return"
         rows = read_eval(path)
-        # the data committed in docs/ keeps no final_model.pt: a run is finished there when evaluated to its last
-        # step; the reference PrefPPO's rows are training episodes, whose last wave ends within the last rollout
-        last_step = config.get("total_timesteps", float("inf"))
-        if config.get("episode_returns") == "training":
-            last_step -= config["num_envs"] * config["num_steps"]
-        if state != "finished" and rows and rows[-1]["step"] >= last_step:
+        if state != "finished" and rows and rows[-1]["step"] >= kept_run_end(config):
             state = "finished"
         run = Run(path, config, rows, state, detail, setting, metric)
         if state == "finished":

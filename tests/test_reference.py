@@ -5,6 +5,7 @@ and the report's side-by-side. No network and no reference code needed (CI has n
 import csv
 import json
 import math
+import os
 import shlex
 import shutil
 import subprocess
@@ -682,7 +683,7 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
     from torch.utils.tensorboard import SummaryWriter
 
     root = tmp_path / "parity"
-    prefppo = {"num_envs": 2, "total_timesteps": 5000}
+    prefppo = {"num_envs": 2, "num_steps": 500, "total_timesteps": 5000}
     for seed, (first, last) in enumerate(((10.0, 30.0), (20.0, 50.0)), 1):
         write_run(root, f"ours_{seed}", seed, [999.0, 999.0], extra=prefppo)  # evaluations: not compared
         if seed == 1:  # a process killed after step 4000: its run resumed from step 0, whose file replaces this one
@@ -697,6 +698,12 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
         write_run(root, f"ref_{seed}", seed, [first + 1, last - 9], implementation="reference",
                   extra=prefppo | {"episode_returns": "training"}, steps=(2000, 4000))
     assert grid.run_state(root / "ref_1")[0] == "finished" and grid.run_state(root / "ours_1")[0] == "finished"
+    # kept as in docs/: no final_model.pt (the reference's last wave, at 4000, is in its last rollout of 2 x 500
+    # steps), and the files' mtimes from a checkout: the killed process's file is still the one replaced
+    for final_model in root.glob("*/final_model.pt"):
+        final_model.unlink()
+    for killed in (root / "ours_1").glob("*.killed"):
+        os.utime(killed, (4e9, 4e9))
     target = tmp_path / "parity.md"
     parity_report(root, target)
     text = target.read_text()
