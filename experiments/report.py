@@ -826,16 +826,18 @@ TRUE_REWARD_FOLDERS = (("docs/parity/data/ours",), ("docs/tasks/data/quadruped-w
                        ("docs/tasks/data/button-press-prefppo",), ("docs/tasks/data/sweep-into-prefppo",))
 
 
-def kept_runs(*folders: str) -> list[Run]:
+@functools.cache  # the blocks read the same folders again
+def kept_runs(*folders: str) -> tuple[Run, ...]:
     """The finished runs below folders of the repository, each seed of a setting once (the first folder's copy)."""
-    seen, runs = set(), []
+    seen = set()
+    runs = []
     for folder in folders:
         for run in find_runs(ROOT / folder, ROOT / folder / "report"):
             key = (run.setting, run.config["seed"])
             if run.state == "finished" and key not in seen:
                 seen.add(key)
                 runs.append(run)
-    return runs
+    return tuple(runs)
 
 
 def arm(runs: list[Run], algorithm: str, task: str, teacher: str) -> list[Run]:
@@ -851,8 +853,7 @@ def steps(run: Run) -> str:
     return f"{total // 1_000_000}M" if total % 1_000_000 == 0 else f"{total // 1000}K"
 
 
-def measure(row_or_run) -> str:
-    metric = row_or_run["metric"] if isinstance(row_or_run, dict) else row_or_run.metric
+def measure(metric: str) -> str:
     return "success" if metric == "success_rate" else "return"
 
 
@@ -906,7 +907,7 @@ def glance_table() -> str:
         reference = [arm(runs, "reference-pebble", task, teacher) for teacher in ("oracle", GROUND_TRUTH)]
         scale = f"{steps(pebble[0])}" + (f", PrefPPO {steps(prefppo[0])}" if prefppo else "")
         row = difference_row(pebble, sac)
-        rows.append([f"{task} ({measure(pebble[0])}; {scale})", spread(pebble), spread(sac), spread(prefppo),
+        rows.append([f"{task} ({measure(pebble[0].metric)}; {scale})", spread(pebble), spread(sac), spread(prefppo),
                      spread(arm(runs, "prefppo", task, GROUND_TRUTH)),
                      " / ".join(map(spread, reference)) if reference[0] else "-",
                      f"{difference_text(row)}: {verdict_word(row)}"])
@@ -948,7 +949,7 @@ def true_reward_table() -> str:
             labels = setting[3].split("/")[0]
             preferences = f"{arm_name(new[0])}, {teacher_text(setting[2])}, {labels} labels"
             rows.append([f"{setting[1]}, {steps(new[0])}", preferences,
-                         arm_name(base[0]), measure(row), spread(new), spread(base), difference_text(row),
+                         arm_name(base[0]), measure(row["metric"]), spread(new), spread(base), difference_text(row),
                          verdict_word(row)])
     return "\n".join(table(["task, steps", "preferences", "true reward", "measure", "preferences: final",
                             "true reward: final", "difference [95% CI], Welch p", "verdict"], rows))
@@ -964,7 +965,7 @@ def parity_table() -> str:
         row = difference_row(ours, reference)
         episodes = " (training episodes)" if on_training_episodes(reference[0]) else ""
         rows.append([f"{arm_name(ours[0])}, {setting[1]}, {steps(ours[0])}", teacher_text(setting[2]),
-                     measure(row) + episodes, spread(ours), spread(reference), difference_text(row),
+                     measure(row["metric"]) + episodes, spread(ours), spread(reference), difference_text(row),
                      verdict_word(row)])
     return "\n".join(table(["algorithm, task, steps", "teacher", "measure", "ours", "reference code",
                             "ours - reference [95% CI], Welch p", "verdict"], rows))
@@ -978,7 +979,7 @@ def prefppo_defects_table() -> str:
                          ("with no-bootstrap-time-limits", "docs/ablations/prefppo-no-bootstrap-time-limits"),
                          ("with both edits", "docs/ablations/prefppo-reference-ways")):
         ours = [run for run in kept_runs(folder) if run.algorithm == "prefppo"]
-        for setting, ours_rows, reference_rows in parity_pairs(ours + reference):
+        for setting, ours_rows, reference_rows in parity_pairs([*ours, *reference]):
             row = difference_row(ours_rows, reference_rows)
             finals = " ".join(f"{run.score:.0f}" for run in ours_rows)
             rows.append([name, finals, spread(ours_rows), spread(reference_rows), difference_text(row),
