@@ -12,7 +12,7 @@ import warnings
 from collections import deque, namedtuple
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from functools import partial
-from typing import Literal
+from typing import Annotated, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -42,8 +42,8 @@ class Args:
     """if toggled, record each evaluation's first episode to videos/"""
     compile: bool = False
     """if toggled, compile the SAC update and r_hat; on a GPU, replay whole steps as CUDA graphs"""
-    output_dir: str = ""
-    """where the run's files go ('': runs/<run name>)"""
+    output_dir: Annotated[str, tyro.conf.arg(help_behavior_hint="(default: runs/<run name>)")] = ""
+    """where the run's files go"""
     checkpoint_every: int = 50000
     """steps between checkpoints (0: at the end and on SIGTERM/SIGINT)"""
     resume: str = ""

@@ -44,8 +44,10 @@ PER_RUN_FIELDS = {"seed", "output_dir", "resume", "checkpoint_every", "cuda", "t
 
 @dataclass
 class Args:
-    root: tyro.conf.Positional[str]
+    root: tyro.conf.Positional[str | None] = None
     """folder of runs (searched recursively for folders with a config.json)"""
+    docs: bool = False
+    """instead of a report, rewrite every generated block of README.md and docs/ from the runs kept under docs/"""
     out: str | None = None
     """where report.md, runs.csv, aggregates.csv and the PNGs go (default: ROOT/report)"""
     reps: int = 10000
@@ -114,13 +116,23 @@ def setting_of(config: dict) -> tuple:
     return algorithm, task, teacher, budget, config["sampler"], config["schedule"]
 
 
+def kept_run_end(config: dict) -> float:
+    """The step a run kept without its final_model.pt (the data committed in docs/) has evaluated to once finished:
+    its total steps; the reference PrefPPO's rows are training episodes, whose last wave ends in the last rollout."""
+    if config.get("episode_returns") == "training":
+        return config["total_timesteps"] - config["num_envs"] * config["num_steps"]
+    return config.get("total_timesteps", float("inf"))
+
+
 def find_runs(root: Path, out: Path) -> list[Run]:
-    """Every folder below root with a config.json, except hidden ones (the grid's .aside/) and the report's."""
+    """Every folder below root with a config.json, except hidden ones (the grid's .aside/) and the report's, where
+    the report goes below root (a report beside the kept runs, as docs/parity/ beside docs/parity/data, reads them)."""
     runs = []
     for config_path in sorted(root.rglob("config.json")):
         path = config_path.parent
         relative = path.relative_to(root).parts
-        if any(part.startswith(".") for part in relative) or path == out or out in path.parents:
+        in_report = root in out.parents and (path == out or out in path.parents)
+        if any(part.startswith(".") for part in relative) or in_report:
             continue
         try:
             config = json.loads(config_path.read_text())
@@ -131,8 +143,8 @@ def find_runs(root: Path, out: Path) -> list[Run]:
         state, detail = run_state(path)
         metric = "success_rate" if is_metaworld(config["env_id"]) else "episode_return"
         rows = read_eval(path)
-        if state != "finished" and rows and rows[-1]["step"] >= config.get("total_timesteps", float("inf")):
-            state = "finished"  # evaluated to its last step, final_model.pt not kept (the data committed in docs/)
+        if state != "finished" and rows and rows[-1]["step"] >= kept_run_end(config):
+            state = "finished"
         run = Run(path, config, rows, state, detail, setting, metric)
         if state == "finished":
             run.score = rows[-1][metric]
@@ -480,11 +492,14 @@ def training_rows(run: Run) -> list[dict]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     # one events file per process: a resumed run's file logs again the steps after its checkpoint, which replace
-    # those of the files written before it
-    scalars = []
-    for path in sorted(run.path.glob("events.out.tfevents.*"), key=lambda path: path.stat().st_mtime_ns):
+    # those of the files written before it (in the order of their first events: a checkout's files share one mtime)
+    files = []
+    for path in run.path.glob("events.out.tfevents.*"):
         events = EventAccumulator(str(path), size_guidance={"scalars": 0})
         events.Reload()
+        files.append(events)
+    scalars = []
+    for events in sorted(files, key=lambda events: events.FirstEventTimestamp()):
         if "charts/episodic_return" in events.Tags()["scalars"]:
             new = [(event.step, event.value) for event in events.Scalars("charts/episodic_return")]
             scalars = [(step, value) for step, value in scalars if step < new[0][0]] + new
@@ -575,29 +590,44 @@ def pooled_differences(pairs: list[tuple[tuple, list[Run], list[Run]]], reps: in
 LEVEL = 0.15  # no difference detected and its CI within +-15% of the base's mean: level
 
 
+def verdict_word(row: dict) -> str:
+    """The verdict on a difference row in a few words; verdict() says it with its numbers."""
+    point, low, high = row["difference"]
+    side = "lower" if point < 0 else "higher"
+    base_mean = abs(row["reference_final_mean"])
+    if np.isnan(row["welch_p"]):  # welch_p: nan with fewer than 2 runs a side
+        return "no difference detected"
+    zero_outside = not low <= 0 <= high
+    if zero_outside and row["welch_p"] < 0.05:
+        return side
+    if -LEVEL * base_mean <= low and high <= LEVEL * base_mean:
+        return "no difference detected, level"
+    if zero_outside:
+        return f"{side} by the CI, not by Welch's test"
+    return "no difference detected"
+
+
 def verdict(row: dict, names: tuple[str, str] = ("ours", "reference")) -> str:
-    """Three verdicts: higher or lower when the bootstrap CI of the difference excludes 0 and Welch's p < 0.05 (with
-    few seeds the percentile bootstrap is too narrow, so both must agree), else no difference detected; called level
-    as well when the CI lies within +-15% of the base's mean. names: how the two arms ("ours" and "reference" in the
-    row's keys) are called."""
+    """verdict_word with the numbers: higher or lower when the bootstrap CI of the difference excludes 0 and Welch's
+    p < 0.05 (with few seeds the percentile bootstrap is too narrow, so both must agree); lower or higher by the CI
+    alone when Welch's test does not agree; else no difference detected, called level as well when the CI lies within
+    +-15% of the base's mean. names: how the two arms ("ours" and "reference" in the row's keys) are called."""
     new, base = names
     point, low, high = row["difference"]
     base_mean = abs(row["reference_final_mean"])
     of_base = f"{'the ' * (base == 'reference')}{base}'s mean"
     d = digits(row["metric"])
     difference = f"{new} - {base} = {point:+.{d}f}"
-    if np.isnan(row["welch_p"]):  # welch_p: nan with fewer than 2 runs a side
+    if np.isnan(row["welch_p"]):
         return f"no difference detected: {difference} (a single run on a side: no test; more seeds needed)"
     interval = f"95% CI [{low:+.{d}f}, {high:+.{d}f}], Welch p = {row['welch_p']:.3f}"
-    zero_outside = not low <= 0 <= high
-    if zero_outside and row["welch_p"] < 0.05:
-        side = "lower" if point < 0 else "higher"
-        return f"{side}: {difference} ({abs(point) / base_mean:.0%} of {of_base}), {interval}"
-    if -LEVEL * base_mean <= low and high <= LEVEL * base_mean:
-        return f"no difference detected, level (the CI within ±{LEVEL:.0%} of {of_base}): {difference}, {interval}"
-    if zero_outside:
-        return f"no difference detected: {difference}, {interval} (the bootstrap CI excludes 0, Welch's test does " \
-               "not: more seeds needed)"
+    word = verdict_word(row)
+    if word in ("lower", "higher"):
+        return f"{word}: {difference} ({abs(point) / base_mean:.0%} of {of_base}), {interval}"
+    if word.endswith("level"):
+        return f"{word} (the CI within ±{LEVEL:.0%} of {of_base}): {difference}, {interval}"
+    if word != "no difference detected":
+        return f"{word}: {difference}, {interval} (Welch's p >= 0.05: more seeds needed)"
     return f"no difference detected: {difference}, {interval}"
 
 
@@ -741,7 +771,7 @@ def parity_markdown(rows: list[dict], figures: list[Path], pooled: list[dict], t
              "are narrower than they should be: Welch's p is given beside it). Wall time: minutes per run as "
              "recorded at its last evaluation, both one thread per run, two runs at a time on the same machine. The rerun "
              "and what was checked where the two part: [benchmarks/reference](../benchmarks/reference/README.md), "
-             "[results.md](results.md#parity-with-the-reference-code).", ""]
+             "[results.md](results.md#does-it-learn-like-the-reference-code).", ""]
     for row, figure in zip(rows, figures):
         measure = f": {row['metric'].replace('_', ' ')}" if is_metaworld(row["task"]) else ""
         lines += [f"## {row['algorithm']} on {row['task']}, teacher {row['teacher']}, budget {row['budget']}, "
@@ -762,6 +792,342 @@ def parity_markdown(rows: list[dict], figures: list[Path], pooled: list[dict], t
                   f"[{row['low']:+.1%}, {row['high']:+.1%}]; combined p of ours lower {row['p_lower']:.3f}, of ours "
                   f"higher {row['p_higher']:.3f}.**", ""]
     return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- the docs' generated blocks
+# `python experiments/report.py --docs` writes each block of DOCS_BLOCKS between its two markers in its page, and each
+# figure of DOCS_FIGURES, from the runs kept under docs/ (their config.json and eval.csv; PrefPPO's parity reads its
+# TensorBoard file too). tests/test_generated_docs.py fails where a committed block differs from its rebuild. A new
+# block is a function that returns its Markdown, a row of DOCS_BLOCKS and its two markers in the page
+# (docs/experiments.md says how).
+
+DOCS_REPS = 2000  # bootstrap resamples of every generated block, seeded with DOCS_SEED (a folder's report: --reps)
+DOCS_SEED = 0
+BEGIN = "<!-- generated by experiments/report.py --docs: {name}; do not edit -->"
+END = "<!-- end of generated block {name} -->"
+ARM_NAMES = {("pebble", False): "PEBBLE", ("pebble", True): "SAC", ("prefppo", False): "PrefPPO",
+             ("prefppo", True): "PPO", ("rime", False): "rime.py", ("rime", True): "rime.py's SAC",
+             ("reference-pebble", False): "reference PEBBLE", ("reference-pebble", True): "reference SAC",
+             ("reference-prefppo", False): "reference PrefPPO", ("reference-rime", False): "RIME's code"}
+# the paper's four tasks at CPU scale: the folders of their PEBBLE, SAC, PrefPPO, PPO and reference-code runs
+PAPER_TASKS = {"walker-walk": ("docs/parity/data",),
+               "quadruped-walk": ("docs/tasks/data/quadruped-walk", "docs/tasks/data/quadruped-walk-prefppo"),
+               "button-press": ("docs/tasks/data/button-press", "docs/tasks/data/button-press-prefppo"),
+               "sweep-into": ("docs/tasks/data/sweep-into-250k", "docs/tasks/data/sweep-into-prefppo")}
+# the CPU-scale runs timed in results.md
+RUN_TIME_FOLDERS = ("docs/parity/data", "docs/rime/data/oracle", "docs/tasks/data/quadruped-walk",
+                    "docs/tasks/data/quadruped-walk-prefppo", "docs/tasks/data/button-press",
+                    "docs/tasks/data/button-press-prefppo", "docs/tasks/data/sweep-into-250k",
+                    "docs/tasks/data/sweep-into-prefppo")
+# each preference setting against its algorithm's runs on the true reward, folder by folder
+TRUE_REWARD_FOLDERS = (("docs/parity/data/ours",), ("docs/tasks/data/quadruped-walk",),
+                       ("docs/tasks/data/button-press",), ("docs/tasks/data/sweep-into-250k",),
+                       ("docs/tasks/data/sweep-into",), ("docs/tasks/data/quadruped-walk-prefppo",),
+                       ("docs/tasks/data/button-press-prefppo",), ("docs/tasks/data/sweep-into-prefppo",))
+
+
+@functools.cache  # the blocks read the same folders again
+def kept_runs(*folders: str) -> tuple[Run, ...]:
+    """The finished runs below folders of the repository, each seed of a setting once (the first folder's copy)."""
+    seen = set()
+    runs = []
+    for folder in folders:
+        for run in find_runs(ROOT / folder, ROOT / folder / "report"):
+            key = (run.setting, run.config["seed"])
+            if run.state == "finished" and key not in seen:
+                seen.add(key)
+                runs.append(run)
+    return tuple(runs)
+
+
+def arm(runs: list[Run], algorithm: str, task: str, teacher: str) -> list[Run]:
+    return [run for run in runs if run.setting[:3] == (algorithm, task, teacher)]
+
+
+def arm_name(run: Run) -> str:
+    return ARM_NAMES[run.algorithm, run.is_ground_truth]
+
+
+def steps(run: Run) -> str:
+    total = run.config["total_timesteps"]
+    return f"{total // 1_000_000}M" if total % 1_000_000 == 0 else f"{total // 1000}K"
+
+
+def measure(metric: str) -> str:
+    return "success" if metric == "success_rate" else "return"
+
+
+def spread(group: list[Run]) -> str:
+    """Final score, mean ± standard deviation over seeds (numpy's, ddof 0), and the number of seeds."""
+    if not group:
+        return "-"
+    scores = np.array([run.score for run in group])
+    d = digits(group[0].metric)
+    return f"{scores.mean():.{d}f} ± {scores.std():.{d}f} ({len(scores)})"
+
+
+def difference_row(new: list[Run], base: list[Run]) -> dict:
+    """new - base on the final scores, with the keys that verdict() reads."""
+    finals = [np.array([run.score for run in group]) for group in (new, base)]
+    return {"metric": new[0].metric, "reference_final_mean": float(finals[1].mean()),
+            "difference": difference_ci(*finals, DOCS_REPS, DOCS_SEED), "welch_p": welch_p(*finals)}
+
+
+def difference_text(row: dict) -> str:
+    d = digits(row["metric"])
+    point, low, high = row["difference"]
+    p = "p < 0.001" if row["welch_p"] < 0.001 else f"p = {row['welch_p']:.3f}"
+    return f"{point:+.{d}f} [{low:+.{d}f}, {high:+.{d}f}], {p}"
+
+
+def teacher_text(teacher: str) -> str:
+    """A teacher's name as report.py writes it, in words: mistake(eps_mistake=0.3) is mistake, eps_mistake 0.3."""
+    if teacher == GROUND_TRUTH:
+        return "true reward"
+    return teacher.replace("(", ", ").replace("=", " ").removesuffix(")")
+
+
+def minutes(group: list[Run]) -> str:
+    return f"{np.mean([run.rows[-1]['wall_time'] for run in group]) / 60:.1f}"
+
+
+def same_seeds(new: list[Run], base: list[Run]) -> list[Run]:
+    """base's runs of the seeds that new ran (a comparison of two algorithms on the same seeds)."""
+    seeds = {run.config["seed"] for run in new}
+    return [run for run in base if run.config["seed"] in seeds]
+
+
+def glance_table() -> str:
+    """README: a row per paper task, a column per arm, PEBBLE - SAC's difference and verdict."""
+    rows = []
+    for task, folders in PAPER_TASKS.items():
+        runs = kept_runs(*folders)
+        pebble, sac = arm(runs, "pebble", task, "oracle"), arm(runs, "pebble", task, GROUND_TRUTH)
+        prefppo = arm(runs, "prefppo", task, "oracle")
+        reference = [arm(runs, "reference-pebble", task, teacher) for teacher in ("oracle", GROUND_TRUTH)]
+        scale = f"{steps(pebble[0])}" + (f", PrefPPO {steps(prefppo[0])}" if prefppo else "")
+        row = difference_row(pebble, sac)
+        rows.append([f"{task} ({measure(pebble[0].metric)}; {scale})", spread(pebble), spread(sac), spread(prefppo),
+                     spread(arm(runs, "prefppo", task, GROUND_TRUTH)),
+                     " / ".join(map(spread, reference)) if reference[0] else "-",
+                     f"{difference_text(row)}: {verdict_word(row)}"])
+    return "\n".join(table(["task (measure; steps)", "PEBBLE", "SAC", "PrefPPO", "PPO",
+                            "reference code: PEBBLE / SAC", "PEBBLE - SAC [95% CI], Welch p: verdict"], rows))
+
+
+def pebble_sac_figure(path: Path):
+    """README: PEBBLE (oracle) and SAC's learning curves on the paper's four tasks, mean and one std over seeds."""
+    plt, fig, axes = plt_figure(2, 2, 10, 6.4)
+    for ax, (task, folders) in zip(axes.flat, PAPER_TASKS.items()):
+        runs = kept_runs(*folders)
+        for color, teacher in (("C0", "oracle"), ("black", GROUND_TRUTH)):
+            group = arm(runs, "pebble", task, teacher)
+            shared = sorted(set.intersection(*[set(curve(run)) for run in group]))
+            values = np.array([[curve(run)[step] for step in shared] for run in group])
+            label = f"{arm_name(group[0])} ({len(group)} seeds)"
+            ax.plot(shared, values.mean(0), color=color, label=label)
+            ax.fill_between(shared, values.mean(0) - values.std(0), values.mean(0) + values.std(0), color=color,
+                            alpha=0.15)
+        ax.set_title(task, fontsize=10)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(group[0].metric.replace("_", " "))
+        ax.legend(fontsize=8)
+    fig.suptitle("PEBBLE (oracle teacher) against SAC on the true reward: mean and one standard deviation over seeds",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def true_reward_table() -> str:
+    """results.md: each preference setting against its algorithm on the true reward (Meta-World: success, then
+    return)."""
+    rows = []
+    for folders in TRUE_REWARD_FOLDERS:
+        for setting, new, base in ground_truth_pairs(kept_runs(*folders)):
+            row = difference_row(new, base)
+            labels = setting[3].split("/")[0]
+            preferences = f"{arm_name(new[0])}, {teacher_text(setting[2])}, {labels} labels"
+            rows.append([f"{setting[1]}, {steps(new[0])}", preferences,
+                         arm_name(base[0]), measure(row["metric"]), spread(new), spread(base), difference_text(row),
+                         verdict_word(row)])
+    return "\n".join(table(["task, steps", "preferences", "true reward", "measure", "preferences: final",
+                            "true reward: final", "difference [95% CI], Welch p", "verdict"], rows))
+
+
+def parity_table() -> str:
+    """results.md: ours against the reference code on every setting both ran (PrefPPO on training episodes)."""
+    pairs = parity_pairs(kept_runs("docs/parity/data")) + parity_pairs(kept_runs("docs/tasks/data/button-press"))
+    pairs += [(setting, by_return(ours), by_return(reference)) for setting, ours, reference in pairs
+              if ours[0].metric == "success_rate"]
+    rows = []
+    for setting, ours, reference in pairs:
+        row = difference_row(ours, reference)
+        episodes = " (training episodes)" if on_training_episodes(reference[0]) else ""
+        rows.append([f"{arm_name(ours[0])}, {setting[1]}, {steps(ours[0])}", teacher_text(setting[2]),
+                     measure(row["metric"]) + episodes, spread(ours), spread(reference), difference_text(row),
+                     verdict_word(row)])
+    return "\n".join(table(["algorithm, task, steps", "teacher", "measure", "ours", "reference code",
+                            "ours - reference [95% CI], Welch p", "verdict"], rows))
+
+
+def prefppo_defects_table() -> str:
+    """results.md: prefppo.py with the reference's two defects as edits, against the reference's PrefPPO."""
+    reference = kept_runs("docs/parity/data/reference")
+    rows = []
+    for name, folder in (("prefppo.py", "docs/parity/data/ours"),
+                         ("with no-bootstrap-time-limits", "docs/ablations/prefppo-no-bootstrap-time-limits"),
+                         ("with both edits", "docs/ablations/prefppo-reference-ways")):
+        ours = [run for run in kept_runs(folder) if run.algorithm == "prefppo"]
+        for setting, ours_rows, reference_rows in parity_pairs([*ours, *reference]):
+            row = difference_row(ours_rows, reference_rows)
+            finals = " ".join(f"{run.score:.0f}" for run in ours_rows)
+            rows.append([name, finals, spread(ours_rows), spread(reference_rows), difference_text(row),
+                         verdict_word(row)])
+    return "\n".join(table(["walker-walk, 1M steps, oracle", "per seed", "final (training episodes)",
+                            "reference code", "minus the reference [95% CI], Welch p", "verdict"], rows))
+
+
+def rime_table() -> str:
+    """results.md: rime.py against pebble.py (the same seeds) and RIME's own code, with minutes per run."""
+    rows = []
+    for folders, bases in ((("docs/rime/data/eps0.3",), ("pebble", "reference-rime")),
+                           (("docs/rime/data/eps0.1", "docs/rime/data/oracle", "docs/parity/data/ours"), ("pebble",))):
+        runs = kept_runs(*folders)
+        for base in bases:
+            for setting, new, others in compare_pairs(runs, "rime", base):
+                others = same_seeds(new, others)
+                row = difference_row(new, others)
+                rows.append([f"{teacher_text(setting[2])}, {steps(new[0])}", arm_name(others[0]), spread(new),
+                             spread(others), difference_text(row), verdict_word(row),
+                             f"{minutes(new)} / {minutes(others)}"])
+    return "\n".join(table(["walker-walk: teacher, steps", "against", "rime.py", "the other", "rime.py - the other "
+                            "[95% CI], Welch p", "verdict", "minutes per run (rime.py / the other)"], rows))
+
+
+def teachers_table() -> str:
+    """results.md: pebble.py and rime.py with each of the six teachers (mini B-Pref): final return, normalised IQM
+    (each by its own runs on the true reward) and rime.py - pebble.py."""
+    runs = kept_runs("docs/rime/data/mini-bpref")
+    normalize(runs)
+    iqm = {row["algorithm"] + row["teacher"]: row["iqm"] for row in setting_aggregates(runs, DOCS_REPS, DOCS_SEED)}
+    rows = []
+    for setting, rime, pebble in compare_pairs(runs, "rime", "pebble"):
+        row = difference_row(rime, pebble)
+        normalised = ["{0:.2f} [{1:.2f}, {2:.2f}]".format(*iqm[name + setting[2]]) if name + setting[2] in iqm
+                      else "1 (the denominator)" for name in ("pebble", "rime")]
+        rows.append([teacher_text(setting[2]), spread(pebble), normalised[0], spread(rime), normalised[1],
+                     difference_text(row), verdict_word(row)])
+    return "\n".join(table(["teacher", "pebble.py", "normalised IQM [95% CI]", "rime.py", "normalised IQM [95% CI]",
+                            "rime.py - pebble.py [95% CI], Welch p", "verdict"], rows))
+
+
+def run_times_table() -> str:
+    """results.md: minutes per run at CPU scale (one thread a run), and the first command's run on a GPU, projected
+    from its first blocks of 10K steps (the last block's rate for the rest, as benchmarks/card_speed.py does)."""
+    groups = defaultdict(list)
+    for run in kept_runs(*RUN_TIME_FOLDERS):
+        if run.setting[2] in ("oracle", GROUND_TRUTH):
+            groups[run.setting[1], arm_name(run)].append(run)
+    rows = []
+    order = {key: (key[0], group[0].config["total_timesteps"], key[1]) for key, group in groups.items()}
+    for (task, name), group in sorted(groups.items(), key=lambda item: order[item[0]]):
+        wall = np.array([run.rows[-1]["wall_time"] for run in group]) / 60
+        size = f"{group[0].config['hidden_dim']} x {group[0].config['num_layers']}"
+        rows.append([task, name, steps(group[0]), size, "2-core CPU", len(group),
+                     f"{np.median(wall):.0f} ({wall.min():.0f}-{wall.max():.0f})"])
+    card = ROOT / "docs/tasks/data/card-h200"
+    config = json.loads((card / "config.json").read_text())
+    before, last = read_eval(card)[-2:]
+    seconds_per_step = (last["wall_time"] - before["wall_time"]) / (last["step"] - before["step"])
+    projected = last["wall_time"] + (config["total_timesteps"] - last["step"]) * seconds_per_step
+    rows.append([config["env_id"], f"PEBBLE, {config['teacher']} (the first command)", "1M",
+                 f"{config['hidden_dim']} x {config['num_layers']}", "one NVIDIA H200", 1,
+                 f"{projected / 60:.0f} (projected from its first {last['step'] // 1000:.0f}K steps)"])
+    return "\n".join(table(["task", "arm", "steps", "networks", "machine", "runs", "minutes per run: median (range)"],
+                           rows))
+
+
+def raw_inputs_table() -> str:
+    """differences.md: pebble.py's reward inputs standardised (the default) or raw (the reference's way), beside the
+    reference code, each on the seeds the raw arm ran; final return, then the final reward correlation."""
+    raw = kept_runs("docs/ablations/pebble-raw-reward-inputs")
+    others = kept_runs("docs/parity/data")
+    rows = []
+    for setting in sorted({run.setting for run in raw}, key=sort_key):
+        raw_runs = [run for run in raw if run.setting == setting]
+        standardised = same_seeds(raw_runs, arm(others, "pebble", *setting[1:3]))
+        reference = same_seeds(raw_runs, arm(others, "reference-pebble", *setting[1:3]))
+        row = difference_row(standardised, raw_runs)
+        correlations = [f"{np.mean([run.rows[-1]['reward_correlation'] for run in group]):.2f}"
+                        for group in (standardised, raw_runs, reference)]
+        rows.append([f"{setting[1]}, {teacher_text(setting[2])}", spread(standardised), spread(raw_runs),
+                     spread(reference), f"{difference_text(row)}: {verdict_word(row)}", " / ".join(correlations)])
+    return "\n".join(table(["pebble.py, 100K steps", "standardised (the default)", "raw", "reference code",
+                            "standardised - raw [95% CI], Welch p: verdict",
+                            "final reward correlation (standardised / raw / reference)"], rows))
+
+
+def script_size_table() -> str:
+    """results.md: the algorithm scripts' size as benchmarks/script_size.py counts it, part by part."""
+    from benchmarks import script_size
+
+    parts = ("Args, presets", "Environments", "Networks", "Algorithm", "Plumbing", "main block")
+    rows = []
+    for name in ("pebble.py", "prefppo.py", "rime.py"):
+        source = (ROOT / name).read_text()
+        split = script_size.split(source)
+        rows.append([name, f"{len(script_size.content_tokens(source)):,}", *(f"{split.get(p, 0):,}" for p in parts),
+                     f"{script_size.prose_characters(source):,}", script_size.main_loop_lines(source)])
+    return "\n".join(table(["script", "tokens", *parts, "prose (characters)", "main loop (lines)"], rows))
+
+
+DOCS_BLOCKS = [  # (page, block name, the function that writes the block)
+    ("README.md", "results-at-a-glance", glance_table),
+    ("docs/results.md", "parity", parity_table),
+    ("docs/results.md", "prefppo-defects", prefppo_defects_table),
+    ("docs/results.md", "against-the-true-reward", true_reward_table),
+    ("docs/results.md", "teachers", teachers_table),
+    ("docs/results.md", "rime", rime_table),
+    ("docs/results.md", "run-times", run_times_table),
+    ("docs/differences.md", "raw-reward-inputs", raw_inputs_table),
+    ("docs/results.md", "script-size", script_size_table),
+]
+DOCS_FIGURES = [("docs/tasks/pebble_against_sac.png", pebble_sac_figure)]
+
+
+def block_span(text: str, name: str, page: str) -> tuple[int, int, str]:
+    """Where a block's lines start and end in its page (between its two markers, each there once) and the indent of
+    its begin marker, which every line of the block takes (a block inside a list item)."""
+    begin, end = BEGIN.format(name=name), END.format(name=name)
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise ReportError(f"{page}: block {name!r} needs its two markers once each, in order: {begin} ... {end}")
+    start = text.index(begin)
+    indent = text[text.rfind("\n", 0, start) + 1:start]
+    return start + len(begin), text.index(end) - len(indent), indent
+
+
+def rebuilt_pages(blocks: list = DOCS_BLOCKS) -> dict[Path, str]:
+    """Each page of blocks, with every block rewritten from the kept runs."""
+    pages = {}
+    for page, name, make in blocks:
+        path = ROOT / page
+        text = pages[path] if path in pages else path.read_text()
+        start, end, indent = block_span(text, name, page)
+        lines = "".join(f"{indent}{line}\n" for line in make().splitlines())
+        pages[path] = f"{text[:start]}\n{lines}{text[end:]}"
+    return pages
+
+
+def rewrite_docs():
+    for path, text in rebuilt_pages().items():
+        changed = path.read_text() != text
+        path.write_text(text)
+        print(f"{path.relative_to(ROOT)}: {'rewritten' if changed else 'unchanged'}")
+    for figure, make in DOCS_FIGURES:
+        make(ROOT / figure)
+        print(f"{figure}: drawn")
+
 
 
 # ---------------------------------------------------------------- the report
@@ -817,11 +1183,18 @@ def flat(row: dict) -> dict:
     return result
 
 
+def from_repository(path: Path) -> str:
+    """A path as written in a report: relative to the repository where it lies inside it."""
+    return str(path.relative_to(ROOT)) if ROOT in path.parents else str(path)
+
+
 class ReportError(Exception):
     """A problem with the command line or the folder, said in one line."""
 
 
 def report(args: Args) -> Path:
+    if args.root is None:
+        raise ReportError("give a folder of runs (or --docs alone)")
     root = Path(args.root).resolve()
     out = Path(args.out).resolve() if args.out else root / "report"
     if not root.is_dir():
@@ -868,10 +1241,10 @@ def report(args: Args) -> Path:
                                            f"({type(error).__name__}: {error})")
 
     lines = [f"# B-Pref report: {root.name}", "",
-             f"{len(runs)} runs found in `{root}`, {len(finished)} finished. Normalised return = final evaluation "
-             "return (Meta-World: success rate) / mean of the same over the finished ground-truth runs of the same "
-             f"algorithm on the task. Aggregates over seeds with 95% stratified bootstrap CIs (rliable, {args.reps} "
-             "replications); optimality gap = mean shortfall below 1.", ""]
+             f"{len(runs)} runs found in `{from_repository(root)}`, {len(finished)} finished. Normalised return = "
+             "final evaluation return (Meta-World: success rate) / mean of the same over the finished ground-truth "
+             "runs of the same algorithm on the task. Aggregates over seeds with 95% stratified bootstrap CIs "
+             f"(rliable, {args.reps} replications); optimality gap = mean shortfall below 1.", ""]
     if settings:
         lines += ["## Normalised return per setting", ""]
         lines += table(["algorithm", "task", "teacher", "budget", "sampler", "schedule", "runs", "IQM", "median",
@@ -1008,7 +1381,12 @@ def report(args: Args) -> Path:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     try:
-        report(args)
+        if args.docs and args.root is not None:
+            raise ReportError("--docs takes no folder: it reads the runs kept under docs/")
+        if args.docs:
+            rewrite_docs()
+        else:
+            report(args)
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(2)

@@ -45,7 +45,7 @@ python pebble.py --env-id no-such-task
 MUJOCO_GL=egl python label_server.py runs/<run> --port 8001 --colour red
 python fit_teacher.py --labels RUN_DIR --simulate
 python benchmarks/reference/run.py --env-id walker-walk --seed SEED          # --output-dir is required
-python experiments/report.py --out DIR                                       # so is the folder of runs
+python experiments/report.py DIR --reps many                                 # --reps takes a number
 python experiments/grid.py no-such-preset
 python experiments/grid.py mini-bpref --seeds 1 2 && python experiments/report.py runs/mini-bpref --out DIR
 python experiments/grid.py custom --pebble-flags='--reward-input-norm'

@@ -5,6 +5,7 @@ and the report's side-by-side. No network and no reference code needed (CI has n
 import csv
 import json
 import math
+import os
 import shlex
 import shutil
 import subprocess
@@ -554,11 +555,16 @@ def test_a_verdict_is_higher_lower_or_no_difference_detected_and_level_only_with
     rate = {"difference": (0.267, 0.0, 0.8), "reference_final_mean": 0.733, "welch_p": 0.42, "metric": "success_rate"}
     assert report.verdict(rate) == ("no difference detected: ours - reference = +0.27, 95% CI [+0.00, +0.80], Welch p "
                                     "= 0.420")  # a success rate with two decimals
-    # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): no verdict either way
+    # a bootstrap CI that excludes 0 beside a Welch p above 0.05 (three seeds a side): said in those words
     row = {"difference": (-176.7, -320.0, -26.7), "reference_final_mean": 783.3, "welch_p": 0.134,
            "metric": "episode_return"}
-    assert report.verdict(row).startswith("no difference detected: ours - reference = -176.7")
-    assert report.verdict(row).endswith("(the bootstrap CI excludes 0, Welch's test does not: more seeds needed)")
+    assert report.verdict_word(row) == "lower by the CI, not by Welch's test"
+    assert report.verdict(row).startswith("lower by the CI, not by Welch's test: ours - reference = -176.7")
+    assert report.verdict(row).endswith("(Welch's p >= 0.05: more seeds needed)")
+    assert report.verdict_word(row | {"difference": (176.7, 26.7, 320.0)}) == "higher by the CI, not by Welch's test"
+    assert report.verdict_word(row | {"welch_p": 0.049}) == "lower"
+    assert report.verdict_word(wide) == "no difference detected"
+    assert report.verdict_word(narrow | {"welch_p": 0.5}) == "no difference detected, level"
     one_each = row | {"difference": (-50.0, -50.0, -50.0), "welch_p": report.welch_p(np.array([550.0]), np.array([600.0]))}
     assert report.verdict(one_each).endswith("(a single run on a side: no test; more seeds needed)")
 
@@ -677,7 +683,7 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
     from torch.utils.tensorboard import SummaryWriter
 
     root = tmp_path / "parity"
-    prefppo = {"num_envs": 2, "total_timesteps": 5000}
+    prefppo = {"num_envs": 2, "num_steps": 500, "total_timesteps": 5000}
     for seed, (first, last) in enumerate(((10.0, 30.0), (20.0, 50.0)), 1):
         write_run(root, f"ours_{seed}", seed, [999.0, 999.0], extra=prefppo)  # evaluations: not compared
         if seed == 1:  # a process killed after step 4000: its run resumed from step 0, whose file replaces this one
@@ -692,6 +698,12 @@ def test_prefppo_parity_compares_both_arms_on_training_episodes(tmp_path):
         write_run(root, f"ref_{seed}", seed, [first + 1, last - 9], implementation="reference",
                   extra=prefppo | {"episode_returns": "training"}, steps=(2000, 4000))
     assert grid.run_state(root / "ref_1")[0] == "finished" and grid.run_state(root / "ours_1")[0] == "finished"
+    # kept as in docs/: no final_model.pt (the reference's last wave, at 4000, is in its last rollout of 2 x 500
+    # steps), and the files' mtimes from a checkout: the killed process's file is still the one replaced
+    for final_model in root.glob("*/final_model.pt"):
+        final_model.unlink()
+    for killed in (root / "ours_1").glob("*.killed"):
+        os.utime(killed, (4e9, 4e9))
     target = tmp_path / "parity.md"
     parity_report(root, target)
     text = target.read_text()
