@@ -2,15 +2,15 @@
 figure per task (normalised IQM per teacher, PEBBLE and PrefPPO side by side), the samplers', the schedules', and
 each block of runs with its grid preset and the core-hours it took. Docs: docs/bpref.md
 
-    python experiments/bpref.py          # rewrites the generated parts of docs/bpref.md and docs/bpref/*.png
+    python experiments/report.py --docs     # rewrites docs/bpref.md's generated blocks and docs/bpref/*.png
 
 A block's runs are kept with `python experiments/keep_runs.py runs/<root>/<run>... --to docs/bpref/data/<folder>`;
 the oracle and mistake runs it is compared with are the ones kept for the parity, RIME and task reports.
 """
 
 import csv
+import functools
 import sys
-from collections import defaultdict
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -22,19 +22,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import grid  # noqa: E402
 import report  # noqa: E402
 
-DOCS = ROOT / "docs"
-PAGE = DOCS / "bpref.md"
-FIGURES = DOCS / "bpref"
+FIGURES = ROOT / "docs" / "bpref"
 DATA = FIGURES / "data"
-REPS, SEED = 2000, 0  # bootstrap replications and seed of every interval on the page
-SMOOTHED = "mistake, smoothing 0.1"  # the label-smoothing runs' teacher on the page
+REPS, SEED = report.DOCS_REPS, report.DOCS_SEED  # bootstrap replications and seed of every interval on the page
+SMOOTHED = "mistake(label_smoothing=0.1)"  # the label-smoothing runs' teacher (report.setting_of)
 # Where each task's runs are kept: the blocks' own folders first, then the runs they are compared with
 POOLS = {
-    "walker-walk": ("bpref/data/walker-walk", "bpref/data/walker-walk-smoothing", "bpref/data/walker-walk-prefppo",
-                    "parity/data/ours", "rime/data/eps0.1"),
-    "quadruped-walk": ("bpref/data/quadruped-walk", "tasks/data/quadruped-walk", "tasks/data/quadruped-walk-prefppo"),
-    "button-press": ("bpref/data/button-press", "tasks/data/button-press", "tasks/data/button-press-prefppo"),
-    "sweep-into": ("tasks/data/sweep-into-250k", "tasks/data/sweep-into-prefppo"),
+    "walker-walk": ("docs/bpref/data/walker-walk", "docs/bpref/data/walker-walk-smoothing",
+                    "docs/bpref/data/walker-walk-prefppo", "docs/parity/data/ours"),
+    "quadruped-walk": ("docs/bpref/data/quadruped-walk", "docs/tasks/data/quadruped-walk",
+                       "docs/tasks/data/quadruped-walk-prefppo"),
+    "button-press": ("docs/bpref/data/button-press", "docs/tasks/data/button-press",
+                     "docs/tasks/data/button-press-prefppo"),
+    "sweep-into": ("docs/tasks/data/sweep-into-250k", "docs/tasks/data/sweep-into-prefppo"),
 }
 MANIPULATION = ("button-press", "sweep-into")
 
@@ -64,24 +64,18 @@ BLOCKS = (
 
 
 def load_pool(task: str) -> list[report.Run]:
-    """The finished runs of our code on a task from its folders, one per setting and seed (the first folder's where
-    two hold the same: fixed-seed runs repeat exactly), normalised by their algorithm's ground-truth runs."""
-    runs, seen = [], set()
-    for folder in POOLS[task]:
-        if not (DOCS / folder).is_dir():
-            continue
-        for run in report.find_runs(DOCS / folder, DOCS / folder / "report"):
-            if run.state != "finished" or run.setting[0] not in ("pebble", "prefppo") or run.setting[1] != task:
-                continue
-            if run.config.get("label_smoothing"):
-                run = replace(run, setting=run.setting[:2] + (f"{run.setting[2]}, smoothing "
-                                                              f"{run.config['label_smoothing']}",) + run.setting[3:])
-            key = (run.setting, run.config["seed"])
-            if key not in seen:
-                seen.add(key)
-                runs.append(run)
+    """The finished runs of our code on a task (report.kept_runs: each seed of a setting once), normalised by their
+    algorithm's ground-truth runs."""
+    folders = [folder for folder in POOLS[task] if (ROOT / folder).is_dir()]
+    runs = [replace(run) for run in report.kept_runs(*folders)  # copies: normalize() writes into them
+            if run.setting[0] in ("pebble", "prefppo") and run.setting[1] == task]
     report.normalize(runs)
     return runs
+
+
+@functools.cache
+def pools() -> dict[str, list[report.Run]]:
+    return {task: load_pool(task) for task in POOLS}
 
 
 def arm(runs, algorithm, teacher, sampler="disagreement", schedule="uniform") -> list[report.Run]:
@@ -100,7 +94,9 @@ class Comparison:
     difference: tuple[float, float, float]
     welch_p: float
     call: str
-    """higher, lower or none (no difference detected), by report.verdict's rule"""
+    """higher, lower or none (no difference detected), by report.verdict_word's rule"""
+    word: str
+    """report.verdict_word's words"""
 
     def seeds_needed(self) -> int:
         """Seeds a side that would detect a gap of this size with 80% power at the 5% level (the normal
@@ -111,22 +107,22 @@ class Comparison:
 
     def text(self) -> str:
         point, low, high = self.difference
-        words = {"higher": "higher", "lower": "lower", "none": "no difference detected"}[self.call]
+        words = self.word
         if self.call == "none" and self.seeds_needed() <= 15:
             words += f" (about {self.seeds_needed()} seeds a side would detect a gap this size)"
         return f"{point:+.2f} [{low:+.2f}, {high:+.2f}], p = {self.welch_p:.2f}: {words}"
 
 
 def compare(new: np.ndarray, base: np.ndarray) -> Comparison | None:
-    """new - base with report.verdict's rule (bootstrap CI of the difference and Welch's test); None without two
+    """new - base with report.verdict_word's rule (bootstrap CI of the difference and Welch's test); None without two
     runs a side."""
     if min(len(new), len(base)) < 2:
         return None
     row = {"difference": report.difference_ci(new, base, REPS, SEED), "welch_p": report.welch_p(new, base),
-           "reference_final_mean": float(base.mean()), "metric": "episode_return"}
-    said = report.verdict(row)
-    call = "higher" if said.startswith("higher") else "lower" if said.startswith("lower") else "none"
-    return Comparison(new, base, row["difference"], row["welch_p"], call)
+           "reference_final_mean": float(base.mean())}
+    word = report.verdict_word(row)
+    return Comparison(new, base, row["difference"], row["welch_p"], word if word in ("higher", "lower") else "none",
+                      word)
 
 
 def mean_text(values: np.ndarray) -> str:
@@ -150,9 +146,9 @@ class Finding:
     verdict: str
 
 
-def f1_pebble_above_prefppo(pools) -> Finding:
+def f1_pebble_above_prefppo(pool) -> Finding:
     lines, calls = [], {}
-    for task, runs in pools.items():
+    for task, runs in pool.items():
         pebble, prefppo = normalised(arm(runs, "pebble", "oracle")), normalised(arm(runs, "prefppo", "oracle"))
         result = compare(pebble, prefppo)
         if result is None:
@@ -179,8 +175,8 @@ def f1_pebble_above_prefppo(pools) -> Finding:
                    lines, verdict)
 
 
-def f2_equal_and_skip_above_oracle(pools) -> Finding:
-    runs = pools["quadruped-walk"]
+def f2_equal_and_skip_above_oracle(pool) -> Finding:
+    runs = pool["quadruped-walk"]
     oracle = normalised(arm(runs, "pebble", "oracle"))
     lines, calls = [], []
     for teacher in ("equal", "skip"):
@@ -203,9 +199,9 @@ def f2_equal_and_skip_above_oracle(pools) -> Finding:
                    "PEBBLE, quadruped-walk, 250K steps, 1000 labels", "[quadruped-walk](#the-tasks)", lines, verdict)
 
 
-def f3_mistake_and_stoc_hurt_most(pools) -> Finding:
+def f3_mistake_and_stoc_hurt_most(pool) -> Finding:
     lines, outcomes = [], []
-    for task, runs in pools.items():
+    for task, runs in pool.items():
         for algorithm in ("pebble", "prefppo"):
             means = {t: normalised(arm(runs, algorithm, t)) for t in report.TEACHERS}
             if any(len(values) < 2 for values in means.values()):
@@ -239,8 +235,8 @@ def f3_mistake_and_stoc_hurt_most(pools) -> Finding:
                    verdict)
 
 
-def f4_uncertainty_samplers(pools, speed: dict[str, float]) -> Finding:
-    runs = pools["walker-walk"]
+def f4_uncertainty_samplers(pool, speed: dict[str, float]) -> Finding:
+    runs = pool["walker-walk"]
     uniform = normalised(arm(runs, "pebble", "oracle", sampler="uniform"))
     lines, calls = [], {}
     for sampler in ("disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"):
@@ -282,8 +278,8 @@ def equal_share(run: report.Run) -> float | None:
     return sum(int(r["equal"]) for r in rows) / answered if answered else None
 
 
-def f4a_equal_answers(pools) -> Finding:
-    runs = pools["walker-walk"]
+def f4a_equal_answers(pool) -> Finding:
+    runs = pool["walker-walk"]
     shares, returns = {}, {}
     for sampler in ("uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"):
         group = arm(runs, "pebble", "equal", sampler=sampler)
@@ -315,8 +311,8 @@ def f4a_equal_answers(pools) -> Finding:
                    "[samplers](#samplers-and-schedules)", lines, verdict)
 
 
-def f5_schedules(pools) -> Finding:
-    runs = pools["walker-walk"]
+def f5_schedules(pool) -> Finding:
+    runs = pool["walker-walk"]
     uniform = normalised(arm(runs, "pebble", "oracle"))
     lines, calls = [], []
     for schedule in ("increase", "decay"):
@@ -337,9 +333,9 @@ def f5_schedules(pools) -> Finding:
                    lines, verdict)
 
 
-def f6_alignment(pools) -> Finding:
+def f6_alignment(pool) -> Finding:
     lines, lows = [], {}
-    for task, runs in pools.items():
+    for task, runs in pool.items():
         r = np.array([run.rows[-1]["reward_correlation"] for run in arm(runs, "pebble", "oracle")])
         r = r[np.isfinite(r)]
         if len(r) < 2:
@@ -363,8 +359,8 @@ def f6_alignment(pools) -> Finding:
                    "over the last evaluation's 10 episodes", "[tasks](#the-tasks)", lines, verdict)
 
 
-def f7_label_smoothing(pools) -> Finding:
-    runs = pools["walker-walk"]
+def f7_label_smoothing(pool) -> Finding:
+    runs = pool["walker-walk"]
     mistake = normalised(arm(runs, "pebble", "mistake"))
     result = compare(normalised(arm(runs, "pebble", SMOOTHED)), mistake)
     if result is None:
@@ -395,31 +391,44 @@ def sampler_speed() -> dict[str, float]:
 # ---------------------------------------------------------------- figures and blocks
 
 
-def task_figures(pools) -> list[Path]:
-    """Per task, the paper's Figure 2: PEBBLE and PrefPPO per teacher (their budgets differ: set aside)."""
-    FIGURES.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for runs in pools.values():
-        default = [r for r in runs if r.setting[4:] == ("disagreement", "uniform") and r.setting[2] != SMOOTHED]
-        rows = [row | {"budget": "-"} for row in report.setting_aggregates(default, REPS, SEED)]
-        paths += report.bar_figures(rows, "teacher", "algorithm", ("task",), FIGURES, "teachers",
-                                    "IQM normalised return per teacher")
-    return paths
+def teacher_rows(runs) -> list[dict]:
+    """The paper's Figure 2 on a task: IQM per teacher and algorithm (their budgets differ: set aside)."""
+    default = [r for r in runs if r.setting[4:] == ("disagreement", "uniform") and r.setting[2] != SMOOTHED]
+    return [row | {"budget": "-"} for row in report.setting_aggregates(default, REPS, SEED)]
 
 
-def design_figures(pools) -> list[Path]:
-    """The samplers (oracle and equal teachers) and the schedules (oracle) on walker-walk."""
-    FIGURES.mkdir(parents=True, exist_ok=True)
-    walker = [r for r in pools["walker-walk"] if r.setting[0] == "pebble"]
-    samplers = [r for r in walker if r.setting[5] == "uniform" and r.setting[2] in ("oracle", "equal")]
-    schedules = [r for r in walker if r.setting[4] == "disagreement" and r.setting[2] == "oracle"]
-    return (report.bar_figures(report.setting_aggregates(samplers, REPS, SEED), "sampler", "teacher", ("task",),
-                               FIGURES, "samplers", "IQM normalised return per sampler")
-            + report.bar_figures(report.setting_aggregates(schedules, REPS, SEED), "schedule", "teacher",
-                                 ("task",), FIGURES, "schedules", "IQM normalised return per schedule"))
+def design_rows(column: str) -> list[dict]:
+    """walker-walk, PEBBLE: IQM per sampler (oracle and equal teachers) or per schedule (oracle)."""
+    walker = [r for r in pools()["walker-walk"] if r.setting[0] == "pebble"]
+    if column == "sampler":
+        runs = [r for r in walker if r.setting[5] == "uniform" and r.setting[2] in ("oracle", "equal")]
+    else:
+        runs = [r for r in walker if r.setting[4] == "disagreement" and r.setting[2] == "oracle"]
+    return report.setting_aggregates(runs, REPS, SEED)
 
 
-def block_rows() -> list[list[str]]:
+def draw_figures(folder: Path) -> None:
+    """docs/bpref/teachers_<task>.png per task, samplers_walker-walk.png and schedules_walker-walk.png."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for runs in pools().values():
+        report.bar_figures(teacher_rows(runs), "teacher", "algorithm", ("task",), folder, "teachers",
+                           "IQM normalised return per teacher")
+    for column in ("sampler", "schedule"):
+        report.bar_figures(design_rows(column), column, "teacher", ("task",), folder, f"{column}s",
+                           f"IQM normalised return per {column}")
+
+
+def task_figures_block() -> str:
+    return "\n\n".join(f"![teachers on {task}](bpref/teachers_{task}.png)" for task, runs in pools().items()
+                        if teacher_rows(runs))
+
+
+def design_figures_block() -> str:
+    return "\n\n".join(f"![{column}s on walker-walk](bpref/{column}s_walker-walk.png)"
+                        for column in ("sampler", "schedule") if design_rows(column))
+
+
+def blocks_block() -> str:
     """Per block: its preset, the runs kept of those it plans and the core-hours they took (one thread a run)."""
     rows = []
     for block in BLOCKS:
@@ -428,34 +437,20 @@ def block_rows() -> list[list[str]]:
         seconds = sum(grid.read_eval(path)[-1]["wall_time"] for path in kept)
         rows.append([block.letter, block.what, f"`{block.preset}`", f"{len(kept)} of {len(planned)}",
                      f"{seconds / 3600:.1f}"])
-    return rows
+    return "\n".join(report.table(["block", "runs", "preset", "kept", "core-hours"], rows))
 
 
-def generated(pools) -> dict[str, list[str]]:
-    """The page's generated parts by name."""
-    found = [f1_pebble_above_prefppo(pools), f2_equal_and_skip_above_oracle(pools), f3_mistake_and_stoc_hurt_most(pools),
-             f4_uncertainty_samplers(pools, sampler_speed()), f4a_equal_answers(pools), f5_schedules(pools),
-             f6_alignment(pools), f7_label_smoothing(pools)]
+def findings(pool) -> list[Finding]:
+    return [f1_pebble_above_prefppo(pool), f2_equal_and_skip_above_oracle(pool), f3_mistake_and_stoc_hurt_most(pool),
+            f4_uncertainty_samplers(pool, sampler_speed()), f4a_equal_answers(pool), f5_schedules(pool),
+            f6_alignment(pool), f7_label_smoothing(pool)]
+
+
+def findings_block() -> str:
+    found = findings(pools())
     holding = sum(f.verdict.startswith("holds") for f in found)
-    findings = [f"{holding} of {len(found)} findings hold at this scale.", ""]
-    findings += report.table(["", "finding", "experiment", "figure", "our numbers (95% CIs)", "verdict"],
-                             [[f.key, f.claim, f.experiment, f.figure, "<br>".join(f.numbers), f.verdict]
-                              for f in found])
-    blocks = report.table(["block", "runs", "preset", "kept", "core-hours"], block_rows())
-    return {"findings": findings, "blocks": blocks,
-            "task-figures": [f"![{path.stem}](bpref/{path.name})" for path in task_figures(pools)],
-            "design-figures": [f"![{path.stem}](bpref/{path.name})" for path in design_figures(pools)]}
-
-
-def write_page(parts: dict[str, list[str]], page: Path = PAGE) -> None:
-    """Replaces what stands between each part's markers in the page."""
-    text = page.read_text()
-    for name, lines in parts.items():
-        begin, end = f"<!-- generated by experiments/bpref.py: {name} -->", f"<!-- end of {name} -->"
-        head, rest = text.split(begin)
-        text = head + begin + "\n" + "\n".join(lines) + "\n" + end + rest.split(end, 1)[1]
-    page.write_text(text)
-
-
-if __name__ == "__main__":
-    write_page(generated({task: load_pool(task) for task in POOLS}))
+    lines = [f"{holding} of {len(found)} findings hold at this scale.", ""]
+    lines += report.table(["", "finding", "experiment", "figure", "our numbers (95% CIs)", "verdict"],
+                          [[f.key, f.claim, f.experiment, f.figure, "<br>".join(f.numbers), f.verdict]
+                           for f in found])
+    return "\n".join(lines)

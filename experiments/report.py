@@ -111,6 +111,8 @@ def setting_of(config: dict) -> tuple:
     preset = make_teacher(config["teacher"])  # a saved value equal to the teacher's own is no override
     overrides = [f"{name.removeprefix('teacher_')}={config[name]}" for name in TEACHER_OVERRIDES
                  if config.get(name) is not None and config[name] != getattr(preset, name.removeprefix("teacher_"))]
+    if config.get("label_smoothing"):  # another loss on the same teacher's labels
+        overrides.append(f"label_smoothing={config['label_smoothing']}")
     teacher = config["teacher"] + (f"({', '.join(overrides)})" if overrides else "")
     budget = f"{config['max_feedback']}/{config['feedback_per_session']}"
     return algorithm, task, teacher, budget, config["sampler"], config["schedule"]
@@ -1092,8 +1094,14 @@ DOCS_BLOCKS = [  # (page, block name, the function that writes the block)
     ("docs/results.md", "run-times", run_times_table),
     ("docs/differences.md", "raw-reward-inputs", raw_inputs_table),
     ("docs/results.md", "script-size", script_size_table),
+    # docs/bpref.md: experiments/bpref.py (which imports this module) writes its blocks and figures
+    ("docs/bpref.md", "bpref-findings", lambda: importlib.import_module("bpref").findings_block()),
+    ("docs/bpref.md", "bpref-task-figures", lambda: importlib.import_module("bpref").task_figures_block()),
+    ("docs/bpref.md", "bpref-design-figures", lambda: importlib.import_module("bpref").design_figures_block()),
+    ("docs/bpref.md", "bpref-blocks", lambda: importlib.import_module("bpref").blocks_block()),
 ]
-DOCS_FIGURES = [("docs/tasks/pebble_against_sac.png", pebble_sac_figure)]
+DOCS_FIGURES = [("docs/tasks/pebble_against_sac.png", pebble_sac_figure),
+                ("docs/bpref", lambda folder: importlib.import_module("bpref").draw_figures(folder))]
 
 
 def block_span(text: str, name: str, page: str) -> tuple[int, int, str]:

@@ -518,7 +518,7 @@ def test_sampler_comparison_and_figure_2_are_drawn(synthetic):
     assert not (out / "samplers_pebble_quadruped-walk.png").exists()
 
 
-def test_a_teacher_is_named_with_the_overrides_that_change_it():
+def test_a_teacher_is_named_with_the_overrides_that_change_it_and_label_smoothing():
     base = {"env_id": "walker-walk", "ground_truth_reward": False, "max_feedback": 500, "feedback_per_session": 50,
             "sampler": "entropy", "schedule": "decay"}
     # saved values equal to the named teacher's own (a script may save them resolved) are no override
@@ -531,6 +531,10 @@ def test_a_teacher_is_named_with_the_overrides_that_change_it():
                                                                                                 "-", "-")
     assert report.setting_of({**base, "teacher": "mistake", "teacher_eps_mistake": 0.3, "rime_alpha": 0.5})[:3] == (
         "rime", "walker-walk", "mistake(eps_mistake=0.3)")
+    # label smoothing trains on the same teacher's labels with another loss: a setting of its own, none at 0
+    assert report.setting_of({**base, "teacher": "mistake", "label_smoothing": 0.1})[2] == \
+        "mistake(label_smoothing=0.1)"
+    assert report.setting_of({**base, "teacher": "mistake", "label_smoothing": 0.0})[2] == "mistake"
 
 
 def test_rime_presets_run_pebble_and_rime_with_the_same_flags_and_seeds():
