@@ -498,6 +498,28 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     assert refused.returncode != 0 and "--compare rime prefppo: no setting below" in refused.stderr
 
 
+def test_report_compares_qpa_asking_uniformly_with_pebble_asking_by_disagreement(tmp_path):
+    root = tmp_path / "qpa"
+    for seed, final in enumerate([700, 720, 740], 1):
+        write_run(root, f"qpa_{seed}", seed, [50, final], extra={"her_ratio": 0.5, "sampler": "uniform"})
+        write_run(root, f"pebble_{seed}", seed, [60, [100, 110, 120][seed - 1]])
+    write_run(root, "qpa_500_1", 1, [50, 900], extra={"her_ratio": 0.5, "sampler": "uniform", "max_feedback": 500})
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200",
+                             "--alignment-runs", "0", "--compare", "qpa", "pebble"], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = (root / "report" / "compare_qpa_pebble.md").read_text()
+    assert text.count("## walker-walk") == 1  # the budget without a pebble twin is left out
+    assert "## walker-walk, teacher oracle, budget 1000/100, uniform (qpa) and disagreement (pebble), uniform" in text
+    assert "| qpa | 1 2 3 | 720.0 ± 16.3 | 700 720 740 | 385.0 |" in text
+    assert "| pebble | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 85.0 |" in text
+    write_run(root, "pebble_uniform_1", 1, [60, 100], extra={"sampler": "entropy"})  # two other samplers: ambiguous
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200",
+                             "--alignment-runs", "0", "--compare", "qpa", "pebble"], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode != 0 and "--compare qpa pebble: no setting below" in result.stderr
+
+
 def test_report_sets_each_preference_setting_beside_its_algorithm_s_ground_truth_runs(tmp_path):
     root = tmp_path / "tasks"
     button = {"env_id": "button-press"}
