@@ -51,7 +51,7 @@ class Args:
     labels_from: str = ""
     """start D with an earlier run's labels (run directory or .npz)"""
 
-    # Algorithm specific arguments (QPA's walker-walk; PRESETS: the others')
+    # Algorithm specific arguments (walker-walk's; PRESETS: the others')
     env_id: str = "walker-walk"
     """DMC domain-task, Meta-World task or Gymnasium id"""
     total_timesteps: int = 500_000
@@ -75,9 +75,9 @@ class Args:
     """query selection in the pool (QPA: uniform, policy-aligned by the pool)"""
     schedule: Literal["uniform", "decay", "increase"] = "uniform"
     """feedback schedule (paper Section 4.2)"""
-    max_feedback: int = 100
+    max_feedback: int = 1000
     """total number of queries (the budget)"""
-    feedback_per_session: int = 10
+    feedback_per_session: int = 100
     """queries per feedback session (uniform schedule)"""
     feedback_every: int = 20_000
     """environment steps between feedback sessions"""
@@ -139,11 +139,10 @@ class Args:
     """reward-learning steps per session: ceil(this x |D| / batch) (0: --reward-epochs epochs)"""
 
 
-# QPA's run_QPA.sh (Args: walker_walk's); Meta-World: B-Pref's budget and networks with QPA's
-# learning rate, reward epochs on whole segments and pool of 30 episodes (differences.md)
+# PEBBLE's presets (budgets, networks) with QPA's settings: run_QPA.sh's walker_walk (Args); on
+# Meta-World its learning rate, reward epochs on whole segments, a pool of 30 (differences.md)
 PRESETS = {
-    "quadruped-walk": dict(total_timesteps=1_000_000, max_feedback=1000, feedback_per_session=100,
-                           feedback_every=30_000, learning_rate=1e-4),
+    "quadruped-walk": dict(total_timesteps=1_000_000, feedback_every=30_000, learning_rate=1e-4),
     "metaworld": dict(total_timesteps=1_000_000, max_feedback=10_000, feedback_per_session=50,
                       feedback_every=4950, hidden_dim=256, num_layers=3, batch_size=512,
                       learning_rate=1e-4, reward_epochs=200, reward_updates=0, data_aug_ratio=0,

@@ -56,7 +56,7 @@ class Grid:
     algorithms: tuple[str, ...] = ("pebble",)
     """pebble, prefppo, rime and/or qpa"""
     implementations: tuple[str, ...] = ("ours",)
-    """ours and/or reference (the reference code: PEBBLE, SAC, PrefPPO; RIME's and QPA's own code; benchmarks/reference)"""
+    """ours and/or reference (the reference code: PEBBLE, SAC, PrefPPO; RIME's, QPA's own; benchmarks/reference)"""
     env_ids: tuple[str, ...] = ("walker-walk",)
     """tasks (any --env-id of the scripts)"""
     teachers: tuple[str, ...] = tuple(TEACHERS)

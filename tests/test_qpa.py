@@ -210,7 +210,8 @@ QPA_RANGES = [
 
 def test_qpa_s_flags_out_of_range_are_one_line_before_any_work(tmp_path):
     outs = [tmp_path / flag / "run" for flag, _, _ in QPA_RANGES]
-    results = run_in_one_interpreter("qpa.py", [(out, [flag, value]) for out, (flag, value, _) in zip(outs, QPA_RANGES)])
+    runs = [(out, [flag, value]) for out, (flag, value, _) in zip(outs, QPA_RANGES)]
+    results = run_in_one_interpreter("qpa.py", runs)
     for (_, _, message), result, out in zip(QPA_RANGES, results, outs):
         assert result.returncode == 2 and result.stderr == f"error: {message}\n"
         assert not out.exists()

@@ -65,15 +65,16 @@ QPA_EDITS = RIME_EDITS + [
      "its evaluations go to W&B only: a function that writes each to eval.csv and prints it (defined here)"),
     ("train_QPA.py",
      "ep_reward, ep_reward_hat, success_rate  = self.evaluate()\n",
-     "ep_reward, ep_reward_hat, success_rate  = self.evaluate()\n"
-     "                        record_evaluation(self.step, ep_reward, ep_reward_hat, success_rate, self.total_feedback)\n",
+     "ep_reward, ep_reward_hat, success_rate  = self.evaluate()\n                        "
+     "record_evaluation(self.step, ep_reward, ep_reward_hat, success_rate, self.total_feedback)\n",
      "... called after each evaluation, with the values the evaluation computed"),
 ]
 
 
 def apply(tree: Path) -> list[str]:
     """Applies every edit of EDITS (RIME_EDITS where `tree` has train_RIME.py, QPA_EDITS where it has train_QPA.py) to
-    `tree`; returns what it did, one line an edit. An edit already applied is left as it is; a file where neither the original nor the edited text is
+    `tree`; returns what it did, one line an edit. An edit already applied is left as it is; a file where neither the
+    original nor the edited text is
     found is an error."""
     done = []
     edits, source = EDITS, f"BPref at {REFERENCE_COMMIT[:7]}"

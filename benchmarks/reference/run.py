@@ -540,7 +540,7 @@ def main(args: Args) -> int:
     try:
         for line in process.stdout:
             print(line, end="", flush=True)
-            if line.startswith("| eval"):  # PEBBLE and SAC: an evaluation
+            if "| eval |" in line:  # PEBBLE, SAC and QPA: an evaluation (QPA's may follow its tqdm bar)
                 wall_times.append(round(time.time() - start, 1))
                 write_eval(out, converted_rows(bpref, wall_times))
             if "total_timesteps" in line:  # PrefPPO: the end of a rollout's update
