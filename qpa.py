@@ -437,21 +437,6 @@ class ReplayBuffer(nn.Module):
         self.size, self.pos = state
 
 
-def sac_batch(buffer, args, progress, episodes):
-    """SAC's batch; while labels remain, QPA's hybrid replay: a share --her-ratio from the query
-    pool's episodes (the last transitions stored), the rest from all."""
-    labels_remain = progress.feedback_used < args.max_feedback and not args.ground_truth_reward
-    if not (progress.pretrained and labels_remain):
-        return buffer.sample(args.batch_size)
-    recent = int(args.batch_size * args.her_ratio)
-    window = min(sum(len(episode[0]) for episode in episodes), buffer.size)
-    back = torch.randint(window, (recent,), device=buffer.obs.device)
-    idx = (buffer.pos - 1 - back) % len(buffer.obs)
-    batch = buffer.sample(args.batch_size - recent)
-    return Batch(*(torch.cat([part, getattr(buffer, name)[idx]])
-                   for name, part in zip(Batch._fields, batch)))
-
-
 def knn_distance(states, reference, k):
     """Eq. (8) without the log: distance to the k-th nearest other state."""
     distances = torch.cdist(states, reference)
@@ -489,6 +474,21 @@ def relabel(buffer, reward_model, chunk=16384):
         for i in range(0, buffer.size, chunk):
             obs_action = torch.cat([buffer.obs[i : i + chunk], buffer.actions[i : i + chunk]], -1)
             buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
+
+
+def sac_batch(buffer, args, progress, episodes):
+    """SAC's batch; while labels remain, QPA's hybrid replay: a share --her-ratio from the query
+    pool's episodes (the last transitions stored), the rest from all."""
+    labels_remain = progress.feedback_used < args.max_feedback and not args.ground_truth_reward
+    if not (progress.pretrained and labels_remain):
+        return buffer.sample(args.batch_size)
+    recent = int(args.batch_size * args.her_ratio)
+    window = min(sum(len(episode[0]) for episode in episodes), buffer.size)
+    back = torch.randint(window, (recent,), device=buffer.obs.device)
+    idx = (buffer.pos - 1 - back) % len(buffer.obs)
+    batch = buffer.sample(args.batch_size - recent)
+    return Batch(*(torch.cat([part, getattr(buffer, name)[idx]])
+                   for name, part in zip(Batch._fields, batch)))
 
 
 def coverage_features(inputs0, inputs1, obs_dim):
@@ -552,7 +552,7 @@ def train_reward(reward_model, optimizer, preferences, args):
             strict = strict + (labels != 0.5).sum()
         optimize(optimizer, loss)
         losses.append(loss.detach() / len(reward_model.members))
-        accuracy = correct.item() / (strict.item() or 1)
+        accuracy = correct.item() / max(strict.item(), 1)
         if args.reward_updates and accuracy >= 0.98:  # QPA's code: the accuracy so far
             break
         if not args.reward_updates and start + size >= len(y) and accuracy > 0.97:
