@@ -491,19 +491,6 @@ def sac_batch(buffer, args, progress, episodes):
                    for name, part in zip(Batch._fields, batch)))
 
 
-def coverage_features(inputs0, inputs1, obs_dim):
-    """Appendix, coverage sampling: both segments' states."""
-    states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
-    return torch.cat(states, 1).cpu().numpy()
-
-
-def preference_loss(segment_returns, y, label_smoothing=0.0):
-    """Eq. (3): cross-entropy of P[sigma1 > sigma0] (Eq. (2)) against (1 - y, y)."""
-    target = (1 - label_smoothing) * y + label_smoothing / 2
-    log_probs = F.log_softmax(segment_returns, dim=-1)
-    return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
-
-
 def crop_returns(rewards0, rewards1, crops):
     """Segment returns (pairs, 2); QPA's data augmentation: (crops x pairs, 2), sums over windows
     of one length (QPA's code: H-15 to H-5) at a random start in each segment."""
@@ -520,6 +507,19 @@ def crop_returns(rewards0, rewards1, crops):
         inside = (steps >= start) & (steps < start + length)
         returns.append((rewards[..., 0] * inside).sum(-1))
     return torch.stack(returns, -1).flatten(0, 1)
+
+
+def coverage_features(inputs0, inputs1, obs_dim):
+    """Appendix, coverage sampling: both segments' states."""
+    states = [inputs0[..., :obs_dim].flatten(1), inputs1[..., :obs_dim].flatten(1)]
+    return torch.cat(states, 1).cpu().numpy()
+
+
+def preference_loss(segment_returns, y, label_smoothing=0.0):
+    """Eq. (3): cross-entropy of P[sigma1 > sigma0] (Eq. (2)) against (1 - y, y)."""
+    target = (1 - label_smoothing) * y + label_smoothing / 2
+    log_probs = F.log_softmax(segment_returns, dim=-1)
+    return -((1 - target) * log_probs[:, 0] + target * log_probs[:, 1]).mean()
 
 
 def train_reward(reward_model, optimizer, preferences, args):
