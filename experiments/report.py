@@ -5,9 +5,9 @@ bootstrap confidence intervals (rliable), a Markdown file with the tables and PN
 
 A run is any folder below the root with a config.json (made by pebble.py, rime.py, qpa.py or prefppo.py, by the
 grid runner or by hand). Normalised return of a run = its final evaluation return (Meta-World: success rate, as in
-the paper) / the mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same task. A run is
-finished when its eval.csv reaches its total steps; config.json and eval.csv are all the tables need (the reward
-alignment needs final_model.pt too), so `python experiments/report.py docs/tasks/data/sweep-into` works.
+the paper) / the mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same
+task. A run is finished when its eval.csv reaches its total steps; config.json and eval.csv are all the tables need
+(the reward alignment needs final_model.pt too), so `python experiments/report.py docs/tasks/data/sweep-into` works.
 """
 
 import csv
