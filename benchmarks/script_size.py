@@ -78,4 +78,4 @@ def report(paths: list[str]) -> str:
 
 
 if __name__ == "__main__":
-    print(report(sys.argv[1:] or [*GOALS, "rime.py"]))
+    print(report(sys.argv[1:] or [*GOALS, "rime.py", "qpa.py"]))

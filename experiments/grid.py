@@ -16,6 +16,7 @@ checkpoint (--resume) and starts afresh those that stopped before one (the parti
 
 import concurrent.futures
 import csv
+import importlib
 import json
 import os
 import re
@@ -40,8 +41,8 @@ from samplers import SAMPLERS, SCHEDULES  # noqa: E402
 from sim_teacher import TEACHERS  # noqa: E402
 from benchmarks.reference.edits import EDITS  # noqa: E402
 
-ALGORITHMS = ("pebble", "prefppo", "rime")
-IMPLEMENTATIONS = ("ours", "reference")  # reference: BPref (RIME's fork for rime) through benchmarks/reference/run.py
+ALGORITHMS = ("pebble", "prefppo", "rime", "qpa")
+IMPLEMENTATIONS = ("ours", "reference")  # reference: BPref (RIME's, QPA's fork) through benchmarks/reference/run.py
 REFERENCE_RUNNER = ROOT / "benchmarks" / "reference" / "run.py"
 EDITS_RUNNER = ROOT / "benchmarks" / "reference" / "edits.py"
 # Flags the grid sets for each run; --flags must not set them too
@@ -54,9 +55,9 @@ EXIT_MEANINGS = {0: "ok", 1: "an unexpected error: its log has the traceback", 2
 @dataclass(frozen=True)
 class Grid:
     algorithms: tuple[str, ...] = ("pebble",)
-    """pebble, prefppo and/or rime"""
+    """pebble, prefppo, rime and/or qpa"""
     implementations: tuple[str, ...] = ("ours",)
-    """ours and/or reference (the reference code: PEBBLE, SAC, PrefPPO; RIME's own code: RIME; benchmarks/reference)"""
+    """ours and/or reference (the reference code: PEBBLE, SAC, PrefPPO; RIME's, QPA's own; benchmarks/reference)"""
     env_ids: tuple[str, ...] = ("walker-walk",)
     """tasks (any --env-id of the scripts)"""
     teachers: tuple[str, ...] = tuple(TEACHERS)
@@ -64,7 +65,7 @@ class Grid:
     budgets: tuple[str, ...] = ("preset",)
     """max_feedback[/feedback_per_session], e.g. 1000/100 or 500; 'preset' = the task's preset"""
     samplers: tuple[str, ...] = ("disagreement",)
-    """query samplers"""
+    """query samplers; 'default' = each script's own (pebble, rime, prefppo: disagreement; qpa: uniform)"""
     schedules: tuple[str, ...] = ("uniform",)
     """feedback schedules"""
     seeds: tuple[int, ...] = (1, 2, 3)
@@ -81,6 +82,8 @@ class Grid:
     """more flags for prefppo.py runs only (one string, as --flags)"""
     rime_flags: str = ""
     """more flags for rime.py runs only (one string, as --flags)"""
+    qpa_flags: str = ""
+    """more flags for qpa.py runs only (one string, as --flags)"""
     edits: tuple[str, ...] = ()
     """the reference code's ways, applied to copies of our scripts (benchmarks/reference/edits.py)"""
     root: str = "runs/grid"
@@ -230,6 +233,42 @@ PRESETS = {
         Grid(algorithms=("rime",), implementations=("reference",), teachers=("mistake",), budgets=("1000/100",),
              seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/rime-eps0.3",
              flags=CPU_PEBBLE + " --teacher-eps-mistake 0.3")),
+    # QPA against PEBBLE (docs/qpa.md): each asks its own way (--samplers default: qpa.py uniformly from the last 10
+    # episodes, pebble.py and rime.py by disagreement), the rest the same; in the roots of the kept runs of PEBBLE
+    "qpa-walker-100": (
+        "QPA and PEBBLE (oracle, 100 labels: 10 sessions of 10 within 100K steps), walker-walk at the README's CPU "
+        "scale, 5 seeds",
+        Grid(algorithms=("pebble", "qpa"), teachers=("oracle",), budgets=("100/10",), samplers=("default",),
+             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/qpa-walker", flags=CPU_PEBBLE)),
+    "qpa-reference": (
+        "QPA's own code (benchmarks/reference/setup_qpa.sh) on qpa-walker-100's setting and root, 5 seeds, for "
+        "report.py --compare qpa reference-qpa",
+        Grid(algorithms=("qpa",), implementations=("reference",), teachers=("oracle",), budgets=("100/10",),
+             samplers=("default",), seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/qpa-walker",
+             flags=CPU_PEBBLE)),
+    "qpa-walker-1000": (
+        "QPA and PEBBLE (oracle, 1000 labels), walker-walk at the README's CPU scale, 5 seeds; PEBBLE's runs are "
+        "parity-pebble's (same root)",
+        Grid(algorithms=("pebble", "qpa"), teachers=("oracle",), budgets=("1000/100",), samplers=("default",),
+             seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/parity", flags=CPU_PEBBLE)),
+    "qpa-button-press": (
+        "QPA and PEBBLE (oracle, 900 labels in sessions of 50 every 4950 steps), button-press as button-press-cpu, "
+        "5 seeds, beside that preset's runs",
+        Grid(algorithms=("pebble", "qpa"), env_ids=("button-press",), teachers=("oracle",), budgets=("900/50",),
+             samplers=("default",), seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/button-press",
+             flags=CPU_METAWORLD)),
+    "qpa-sweep-into": (
+        "QPA and PEBBLE (oracle, 1400 labels in sessions of 50 every 4950 steps), sweep-into as sweep-into-cpu, "
+        "5 seeds, beside that preset's runs",
+        Grid(algorithms=("pebble", "qpa"), env_ids=("sweep-into",), teachers=("oracle",), budgets=("1400/50",),
+             samplers=("default",), seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/sweep-into",
+             flags=CPU_SWEEP_INTO)),
+    "qpa-mistake": (
+        "QPA beside PEBBLE and RIME under the mistake teacher (eps 0.1), as rime-mistake (same root and flags: "
+        "its runs are that preset's), 5 seeds",
+        Grid(algorithms=("pebble", "rime", "qpa"), teachers=("mistake",), budgets=("1000/100",),
+             samplers=("default",), seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/rime",
+             flags=CPU_PEBBLE + " --checkpoint-every 10000")),
     # B-Pref's findings at CPU scale (docs/bpref.md): each block its own root; the oracle and mistake runs of
     # walker-walk and the oracle runs of the other tasks are the kept runs of the presets above
     "bpref-walker-teachers": (
@@ -318,7 +357,8 @@ def check(grid: Grid) -> str | None:
     """The first problem with the grid as one line, or None."""
     for name, given, known in (("algorithms", grid.algorithms, ALGORITHMS), ("teachers", grid.teachers, TEACHERS),
                                ("implementations", grid.implementations, IMPLEMENTATIONS),
-                               ("samplers", grid.samplers, SAMPLERS), ("schedules", grid.schedules, SCHEDULES)):
+                               ("samplers", grid.samplers, (*SAMPLERS, "default")),
+                               ("schedules", grid.schedules, SCHEDULES)):
         unknown = [value for value in given if value not in known]
         if unknown:
             return f"--{name} {unknown[0]!r} is not one of {', '.join(known)}"
@@ -326,9 +366,12 @@ def check(grid: Grid) -> str | None:
         unfit = [algorithm for algorithm in grid.algorithms if f"{algorithm}.py" not in EDITS.get(edit, {})]
         if unfit:
             return f"--edits {edit!r} is not an edit of {unfit[0]}.py (known: {', '.join(EDITS)})"
-    for algorithm, what in (("prefppo", "PrefPPO, not PPO"), ("rime", "RIME's code, not SAC")):
+    for algorithm, what in (("prefppo", "PrefPPO, not PPO"), ("rime", "RIME's code, not SAC"),
+                            ("qpa", "QPA's code, not SAC")):
         if "reference" in grid.implementations and algorithm in grid.algorithms and grid.ground_truth:
             return f"--implementations reference runs {what} on the true reward: add --no-ground-truth"
+    if "default" in grid.samplers and len(grid.samplers) > 1:
+        return "--samplers default (each script's own sampler) stands alone"
     if not (grid.ground_truth or grid.preference_runs):
         return "--no-ground-truth with --no-preference-runs leaves no run"
     for name in ("algorithms", "implementations", "env_ids", "teachers", "budgets", "samplers", "schedules", "seeds"):
@@ -342,7 +385,7 @@ def check(grid: Grid) -> str | None:
             parse_budget(budget)
         except ValueError as error:
             return str(error)
-    for name in ("flags", "pebble_flags", "prefppo_flags", "rime_flags"):
+    for name in ("flags", "pebble_flags", "prefppo_flags", "rime_flags", "qpa_flags"):
         try:
             given = shlex.split(getattr(grid, name))
         except ValueError as error:
@@ -387,6 +430,8 @@ def expand_one(grid: Grid, implementation: str) -> list[Run]:
             for teacher in grid.teachers if grid.preference_runs else ():
                 for budget in grid.budgets:
                     for sampler in grid.samplers:
+                        if sampler == "default":  # the script's own, named and passed as any other
+                            sampler = importlib.import_module(algorithm).Args.sampler
                         for schedule in grid.schedules:
                             for seed in grid.seeds:
                                 name = safe_name(f"{prefix}{algorithm}__{env_id}__{teacher}__fb"

@@ -3,11 +3,11 @@ bootstrap confidence intervals (rliable), a Markdown file with the tables and PN
 
     python experiments/report.py runs/mini-bpref          # writes runs/mini-bpref/report/report.md and the PNGs
 
-A run is any folder below the root with a config.json (made by pebble.py, rime.py or prefppo.py, by the grid runner or by
-hand). Normalised return of a run = its final evaluation return (Meta-World: success rate, as in the paper) / the
-mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same task. A run is
-finished when its eval.csv reaches its total steps; config.json and eval.csv are all the tables need (the reward
-alignment needs final_model.pt too), so `python experiments/report.py docs/tasks/data/sweep-into` works.
+A run is any folder below the root with a config.json (made by pebble.py, rime.py, qpa.py or prefppo.py, by the
+grid runner or by hand). Normalised return of a run = its final evaluation return (Meta-World: success rate, as in
+the paper) / the mean of the same over the finished --ground-truth-reward runs of the same algorithm on the same
+task. A run is finished when its eval.csv reaches its total steps; config.json and eval.csv are all the tables need
+(the reward alignment needs final_model.pt too), so `python experiments/report.py docs/tasks/data/sweep-into` works.
 """
 
 import csv
@@ -102,7 +102,8 @@ def setting_of(config: dict) -> tuple:
     """(algorithm, task, teacher, budget, sampler, schedule) of a run from its config.json; a teacher's overrides
     (--teacher-beta ... that differ from the named teacher's values) are part of its name, and ground-truth runs
     have no teacher, budget, sampler or schedule."""
-    algorithm = "prefppo" if "num_envs" in config else "rime" if "rime_alpha" in config else "pebble"
+    algorithm = ("prefppo" if "num_envs" in config else "rime" if "rime_alpha" in config
+                 else "qpa" if "her_ratio" in config else "pebble")
     if config.get("implementation", "ours") != "ours":  # benchmarks/reference/run.py: its own algorithm's row
         algorithm = f"{config['implementation']}-{algorithm}"
     task = config["env_id"].removesuffix("-v3") if is_metaworld(config["env_id"]) else config["env_id"]
@@ -657,10 +658,18 @@ def parity_figure(setting: tuple, arms: dict[str, list[Run]], out: Path, prefix:
 
 
 def compare_pairs(runs: list[Run], new: str, base: str) -> list[tuple[tuple, list[Run], list[Run]]]:
-    """(NEW's setting, its finished runs, BASE's finished runs) for every setting both algorithms ran."""
+    """(NEW's setting, its finished runs, BASE's finished runs) for every setting both algorithms ran; where BASE ran
+    it with one other sampler only (each algorithm asking its own way: QPA uniformly, PEBBLE by disagreement), that
+    one."""
     groups = finished_by_setting(runs)
-    return [(setting, groups[setting], groups[(base, *setting[1:])]) for setting in sorted(groups, key=sort_key)
-            if setting[0] == new and (base, *setting[1:]) in groups]
+    pairs = []
+    for setting in sorted(groups, key=sort_key):
+        others = [other for other in groups if other[0] == base and other[1:4] == setting[1:4]
+                  and other[5] == setting[5]]
+        twin = (base, *setting[1:])
+        if setting[0] == new and (twin in groups or len(others) == 1):
+            pairs.append((setting, groups[setting], groups[twin if twin in groups else others[0]]))
+    return pairs
 
 
 def ground_truth_pairs(runs: list[Run]) -> list[tuple[tuple, list[Run], list[Run]]]:
@@ -741,8 +750,11 @@ def compare_markdown(rows: list[dict], figures: list[Path], pairs: list, names: 
              "percentile bootstrap CI with seeds resampled within each arm (with few seeds such intervals are "
              "narrower than they should be: Welch's p is given beside it). Wall time: minutes per run at its last "
              "evaluation.", ""]
-    for row, figure, (setting, new_runs, _) in zip(rows, figures, pairs):
-        lines += [f"## {row['task']}, teacher {row['teacher']}, budget {row['budget']}, {row['sampler']}, "
+    for row, figure, (setting, new_runs, base_runs) in zip(rows, figures, pairs):
+        sampler = row["sampler"]
+        if base_runs[0].setting[4] != sampler:
+            sampler = f"{sampler} ({new}) and {base_runs[0].setting[4]} ({base})"
+        lines += [f"## {row['task']}, teacher {row['teacher']}, budget {row['budget']}, {sampler}, "
                   f"{row['schedule']}", "", f"**Verdict: {verdict(row, names)}.**", ""]
         lines += arms_table(row, names)
         records = [(r.config["seed"], d) for r in new_runs if (d := discriminator(r))]

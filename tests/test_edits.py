@@ -40,7 +40,7 @@ def test_an_edit_that_no_longer_fits_is_refused():
         edited_source("pebble.py", ["nonsense"])
 
 
-@pytest.mark.parametrize("script", ["pebble.py", "rime.py"])  # rime.py: RIME's code's raw inputs, warm start too
+@pytest.mark.parametrize("script", ["pebble.py", "rime.py", "qpa.py"])  # rime.py: its warm start's inputs too
 def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(script, tmp_path):
     out = tmp_path / "raw"
     flags = ["--env-id", "Pendulum-v1", "--total-timesteps", "700", "--seed-steps", "200", "--unsup-steps", "200",

@@ -535,6 +535,9 @@ def test_a_teacher_is_named_with_the_overrides_that_change_it_and_label_smoothin
     assert report.setting_of({**base, "teacher": "mistake", "label_smoothing": 0.1})[2] == \
         "mistake(label_smoothing=0.1)"
     assert report.setting_of({**base, "teacher": "mistake", "label_smoothing": 0.0})[2] == "mistake"
+    assert report.setting_of({**base, "teacher": "oracle", "her_ratio": 0.5})[:3] == ("qpa", "walker-walk", "oracle")
+    assert report.setting_of({**base, "teacher": "oracle", "her_ratio": 0.5, "implementation": "reference"})[0] == (
+        "reference-qpa")
 
 
 def test_rime_presets_run_pebble_and_rime_with_the_same_flags_and_seeds():
@@ -545,6 +548,37 @@ def test_rime_presets_run_pebble_and_rime_with_the_same_flags_and_seeds():
         assert pebble and pebble == rime, preset
     eps = grid.expand(grid.PRESETS["rime-mistake-0.3"][1])[0].flags
     assert eps[eps.index("--teacher-eps-mistake") + 1] == "0.3"
+
+
+def without_sampler(run):
+    at = run.flags.index("--sampler")
+    return run.flags[:at] + run.flags[at + 2:]
+
+
+def test_qpa_presets_run_qpa_and_pebble_with_the_same_flags_and_seeds_each_asking_its_own_way():
+    for preset in ("qpa-walker-100", "qpa-walker-1000", "qpa-button-press", "qpa-sweep-into", "qpa-mistake"):
+        runs = grid.expand(grid.PRESETS[preset][1])
+        flags = {algorithm: sorted(without_sampler(r) for r in runs if r.algorithm == algorithm)
+                 for algorithm in ("pebble", "qpa")}
+        assert len(flags["qpa"]) == 5 and flags["pebble"] == flags["qpa"], preset
+        samplers = {r.algorithm: r.flags[r.flags.index("--sampler") + 1] for r in runs}
+        assert samplers["qpa"] == "uniform" and samplers["pebble"] == "disagreement", preset
+        assert {r.name.split("__")[4] for r in runs if r.algorithm == "qpa"} == {"uniform"}  # named as asked
+    # beside the presets whose runs are kept: their PEBBLE (and RIME) runs are the same runs, by name and flags
+    for preset, beside in (("qpa-walker-1000", "parity-pebble"), ("qpa-mistake", "rime-mistake"),
+                           ("qpa-button-press", "button-press-cpu"), ("qpa-sweep-into", "sweep-into-cpu")):
+        ours, theirs = grid.PRESETS[preset][1], replace(grid.PRESETS[beside][1], seeds=(1, 2, 3, 4, 5))
+        earlier = {r.name: r.flags for r in grid.expand(theirs)}
+        others = [r for r in grid.expand(ours) if r.algorithm != "qpa"]
+        assert ours.root == theirs.root and others and all(earlier[r.name] == r.flags for r in others), preset
+    # QPA's own code on qpa-walker-100's setting, in its root: report.py pairs them by setting
+    walker = {r.name: r.flags for r in grid.expand(grid.PRESETS["qpa-walker-100"][1]) if r.algorithm == "qpa"}
+    reference = grid.expand(grid.PRESETS["qpa-reference"][1])
+    assert grid.PRESETS["qpa-reference"][1].root == grid.PRESETS["qpa-walker-100"][1].root
+    assert {r.name.removeprefix("reference__"): r.flags for r in reference} == walker
+    assert reference[0].command(ROOT / "x", resume=False)[1:3] == ["--algorithm", "qpa"]
+    problem = grid.check(replace(grid.PRESETS["qpa-walker-100"][1], samplers=("default", "uniform")))
+    assert problem == "--samplers default (each script's own sampler) stands alone"
 
 
 def test_committed_data_without_final_model_is_reported_and_not_replayed(tmp_path):

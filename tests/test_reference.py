@@ -87,6 +87,66 @@ def test_rimes_tree_gets_only_the_utils_edits(tmp_path):
         patch.apply(tree)
 
 
+def test_qpas_tree_gets_the_utils_edits_an_optional_wandb_and_its_evaluations_written(tmp_path):
+    tree = tmp_path / "QPA"
+    (tree / "agent").mkdir(parents=True)
+    utils_edits = [edit for edit in patch.EDITS if edit[0] == "utils.py"]
+    (tree / "utils.py").write_text("import torch\n" + "".join(old for _, old, _, _ in utils_edits) + "x = 1\n")
+    (tree / "agent" / "sac.py").write_text("import torch\nimport wandb\n")
+    evaluation = "                        ep_reward, ep_reward_hat, success_rate  = self.evaluate()\n"
+    (tree / "train_QPA.py").write_text("import os\nimport wandb\n\nclass Workspace(object):\n    def run(self):\n"
+                                       "        self.step, self.total_feedback = 20000, 30\n"
+                                       "        self.evaluate = lambda: (812.5, -3.0, 0.0)\n"
+                                       "        if True:\n" + evaluation + "\nWorkspace().run()\n")
+    done = patch.apply(tree)
+    assert len(done) == 6 and all(line.startswith("edited ") for line in done)
+    assert all(line.startswith("already edited") for line in patch.apply(tree))
+    assert "except ImportError:\n    wandb = None" in (tree / "agent" / "sac.py").read_text()
+    result = subprocess.run([sys.executable, "train_QPA.py"], cwd=tree, capture_output=True, text=True, env=ENV)
+    assert result.returncode == 0 and result.stdout == "| eval | S: 20000 | TR: 812.5000 | FB: 30\n", result.stderr
+    rows = reference_run.converted_rows(tree, [42.0])  # what run.py reads back: the true return, the labels so far
+    assert [(r["step"], r["episode_return"], r["feedback"], r["success_rate"], r["wall_time"]) for r in rows] == [
+        (20000, 812.5, 30.0, 0.0, 42.0)]
+    (tree / "agent" / "sac.py").unlink()
+    with pytest.raises(FileNotFoundError, match="a copy of QPA's code at 7e9e49e"):
+        patch.apply(tree)
+
+
+def test_qpa_flags_become_the_overrides_of_qpas_walker_run():
+    args = reference_run.Args(output_dir="x", algorithm="qpa", seed=2, total_timesteps=100000, hidden_dim=256,
+                              num_layers=2, batch_size=256, feedback_every=9000, max_feedback=100,
+                              feedback_per_session=10)
+    assert reference_run.resolve(args) is None and args.sampler == "uniform"  # qpa.py's own
+    command = reference_run.qpa_command(args)
+    assert command[0] == "train_QPA.py"
+    # run_QPA.sh's walker_walk line (lr 0.0005, reward_update 2000, segment 50, max_reward_buffer_size 10,
+    # data_aug_ratio 20, ensemble_size 1, explore false, her_ratio 0.5) at the README's CPU scale
+    expected = {"env": "walker_walk", "seed": "2", "device": "cpu", "num_train_steps": "100001",
+                "num_seed_steps": "1000", "num_unsup_steps": "9000", "agent.params.actor_lr": "0.0005",
+                "agent.params.critic_lr": "0.0005", "agent.params.batch_size": "256",
+                "diag_gaussian_actor.params.hidden_dim": "256", "diag_gaussian_actor.params.hidden_depth": "2",
+                "double_q_critic.params.hidden_dim": "256", "double_q_critic.params.hidden_depth": "2",
+                "eval_frequency": "10000", "num_eval_episodes": "10", "num_interact": "9000", "max_feedback": "100",
+                "reward_batch": "10", "reward_update": "2000", "segment": "50", "gradient_update": "1",
+                "activation": "tanh", "teacher_beta": "-1", "teacher_gamma": "1.0", "teacher_eps_mistake": "0.0",
+                "teacher_eps_skip": "0.0", "teacher_eps_equal": "0.0", "max_reward_buffer_size": "10",
+                "data_aug_ratio": "20", "ensemble_size": "1", "explore": "false", "her_ratio": "0.5",
+                "wandb": "false"}
+    assert settings(command) == expected
+    config = reference_run.our_config(args, command)
+    assert config["her_ratio"] == 0.5 and "rime_alpha" not in config and "num_envs" not in config
+    assert report.setting_of(config) == ("reference-qpa", "walker-walk", "oracle", "100/10", "uniform", "uniform")
+    for flags, error in (({"sampler": "disagreement"}, "--sampler disagreement: QPA's code has uniform only"),
+                         ({"reward_updates": 0}, "--reward-updates and --query-recent-episodes: QPA's code needs"),
+                         ({"ground_truth_reward": True}, "--ground-truth-reward: only with --algorithm pebble"),
+                         ({"rime_alpha": 0.5}, "--rime-alpha is not a setting of qpa")):
+        assert reference_run.resolve(reference_run.Args(output_dir="x", algorithm="qpa", **flags)).startswith(error)
+    assert reference_run.resolve(reference_run.Args(output_dir="x", her_ratio=0.5)) == "--her-ratio is not a " \
+                                                                                     "setting of pebble"
+    pebble = reference_run.Args(output_dir="x")
+    assert reference_run.resolve(pebble) is None and pebble.sampler == "disagreement"  # pebble.py's own
+
+
 def settings(command: list[str]) -> dict:
     return dict(item.split("=", 1) for item in command[1:])
 
@@ -497,6 +557,28 @@ def test_report_compares_two_algorithms_on_the_settings_both_ran(tmp_path):
     refused = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--compare", "rime",
                               "prefppo"], capture_output=True, text=True, env=ENV, cwd=ROOT)
     assert refused.returncode != 0 and "--compare rime prefppo: no setting below" in refused.stderr
+
+
+def test_report_compares_qpa_asking_uniformly_with_pebble_asking_by_disagreement(tmp_path):
+    root = tmp_path / "qpa"
+    for seed, final in enumerate([700, 720, 740], 1):
+        write_run(root, f"qpa_{seed}", seed, [50, final], extra={"her_ratio": 0.5, "sampler": "uniform"})
+        write_run(root, f"pebble_{seed}", seed, [60, [100, 110, 120][seed - 1]])
+    write_run(root, "qpa_500_1", 1, [50, 900], extra={"her_ratio": 0.5, "sampler": "uniform", "max_feedback": 500})
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200",
+                             "--alignment-runs", "0", "--compare", "qpa", "pebble"], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    text = (root / "report" / "compare_qpa_pebble.md").read_text()
+    assert text.count("## walker-walk") == 1  # the budget without a pebble twin is left out
+    assert "## walker-walk, teacher oracle, budget 1000/100, uniform (qpa) and disagreement (pebble), uniform" in text
+    assert "| qpa | 1 2 3 | 720.0 ± 16.3 | 700 720 740 | 385.0 |" in text
+    assert "| pebble | 1 2 3 | 110.0 ± 8.2 | 100 110 120 | 85.0 |" in text
+    write_run(root, "pebble_uniform_1", 1, [60, 100], extra={"sampler": "entropy"})  # two other samplers: ambiguous
+    result = subprocess.run([sys.executable, str(ROOT / "experiments/report.py"), str(root), "--reps", "200",
+                             "--alignment-runs", "0", "--compare", "qpa", "pebble"], capture_output=True, text=True,
+                            env=ENV, cwd=ROOT)
+    assert result.returncode != 0 and "--compare qpa pebble: no setting below" in result.stderr
 
 
 def test_report_sets_each_preference_setting_beside_its_algorithm_s_ground_truth_runs(tmp_path):

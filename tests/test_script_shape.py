@@ -11,8 +11,8 @@ import pytest
 
 from benchmarks.script_size import ROOT, content_tokens, main_loop_lines, prose_characters
 
-SCRIPTS = ("pebble.py", "prefppo.py", "rime.py")
-SIZE_LIMIT = {"pebble.py": 9000, "prefppo.py": 9000, "rime.py": 10100}  # tokens today, rounded up: a regression guard
+SCRIPTS = ("pebble.py", "prefppo.py", "rime.py", "qpa.py")
+SIZE_LIMIT = {"pebble.py": 9000, "prefppo.py": 9000, "rime.py": 10100, "qpa.py": 9500}  # tokens today, rounded up: a regression guard
 # Plumbing that is the same code in both scripts (CleanRL's way: each script stands alone)
 # and reward learning, which is the same algorithm in both; restore differs by SAC's temperature tensor
 SHARED = ("DMCEnv", "MetaWorldSeeding", "env_kind", "make_env", "numpy_seeds", "episode_seed", "knn_distance",
@@ -92,3 +92,20 @@ def test_rime_is_pebble_with_rime_s_parts_only():
     assert "warm_start(reward_model, reward_optimizer, buffer, intrinsic_stats, args)" in added and len(added) == 12
     assert all(any(word in line for word in ("preferences", "truth", "discriminator", "RIME", "intrinsic_stats",
                                              "std", "critic reset")) for line in added), added
+
+
+def test_qpa_is_pebble_with_qpa_s_parts_only():
+    """`diff pebble.py qpa.py` shows QPA: its flags and settings (Args, the presets and the new flags' ranges), the
+    hybrid replay's batch, reward learning on crops by QPA's steps; every other definition is pebble.py's, and the
+    main block differs only in the line that draws SAC's batch."""
+    pebble, qpa = top_level("pebble.py"), top_level("qpa.py")
+    changed = {name for name in pebble.keys() & qpa.keys() if pebble[name] != qpa[name]}
+    assert changed == {"Args", "PRESETS", "RANGES", "train_reward"}
+    assert not pebble.keys() - qpa.keys() and qpa.keys() - pebble.keys() == {"sac_batch", "crop_returns"}
+    main = [text.split('if __name__ == "__main__":')[1].splitlines() for text in map(source, ("pebble.py", "qpa.py"))]
+    removed = [line.strip() for line in main[0] if line not in main[1]]
+    added = [line.strip() for line in main[1] if line not in main[0]]
+    # the SAC update's batch only: the 100 updates after the critic reset draw from the whole buffer (QPA's code)
+    assert removed == ["batch = buffer.sample(args.batch_size)"]
+    assert added == ["batch = sac_batch(buffer, args, progress, episodes)"]
+    assert sum(line.strip() == removed[0] for line in main[1]) == 1

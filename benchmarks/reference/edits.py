@@ -19,9 +19,12 @@ ROOT = Path(__file__).resolve().parents[2]
 
 # name -> {script: [(old text, new text), ...]}; docs/differences.md gives each one's measured effect
 EDITS = {
-    # The reference PEBBLE's (and RIME's code's) reward model sees raw observations (differences.md 17, 22)
+    # The reference PEBBLE's (and RIME's, QPA's code's) reward model sees raw observations (differences.md 17, 22)
     "raw-reward-inputs": {
         "pebble.py": [(
+            "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
+            "")],
+        "qpa.py": [(
             "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
             "")],
         "prefppo.py": [(

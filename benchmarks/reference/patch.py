@@ -1,10 +1,11 @@
 """Compatibility edits to a copy of the reference code (rll-research/BPref at REFERENCE_COMMIT), or of RIME's code
-(CJReinforce/RIME_ICML2024 at RIME_COMMIT, a fork of it), so that it runs on Python 3.11 with today's torch, numpy and
-MuJoCo. Each edit changes how the code reaches a library, never what the algorithm computes; why is in EDITS,
-RIME_EDITS and in benchmarks/reference/README.md.
+(CJReinforce/RIME_ICML2024 at RIME_COMMIT) or QPA's (huxiao09/QPA at QPA_COMMIT), forks of it, so that it runs on
+Python 3.11 with today's torch, numpy and MuJoCo. Each edit changes how the code reaches a library or what it records,
+never what the algorithm computes; why is in EDITS, RIME_EDITS, QPA_EDITS and in benchmarks/reference/README.md.
 
     python benchmarks/reference/patch.py reference/BPref     # applies every edit once; a second call changes nothing
     python benchmarks/reference/patch.py reference/RIME      # a tree with train_RIME.py gets RIME_EDITS
+    python benchmarks/reference/patch.py reference/QPA       # a tree with train_QPA.py gets QPA_EDITS
 """
 
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 
 REFERENCE_COMMIT = "f3ece2ecf04b5d11b276d9bbb19b8004c29429d1"
 RIME_COMMIT = "4ad03f4944e9e4a770bb4d8d7b0e07ea960b77f2"
+QPA_COMMIT = "7e9e49e4291b0af4aaded913a02c15dcd13cce1e"
 
 # (file, text in the reference, replacement, why it changes no algorithm)
 EDITS = [
@@ -43,17 +45,46 @@ EDITS = [
 # edits are the same as the reference's
 RIME_EDITS = [edit for edit in EDITS if edit[0] == "utils.py"]
 
+# QPA's fork: the same two utils.py edits; it logs to Weights & Biases only, so its evaluations are written to
+# eval.csv (the reference's columns) and printed as a line, and its unused wandb import is made optional
+OPTIONAL_WANDB = ("import wandb\n", "try:\n    import wandb\nexcept ImportError:\n    wandb = None\n",
+                  "it imports wandb at the top and uses it only with wandb=true: runs without W&B need no wandb")
+QPA_EDITS = RIME_EDITS + [
+    ("train_QPA.py", *OPTIONAL_WANDB),
+    ("agent/sac.py", *OPTIONAL_WANDB),
+    ("train_QPA.py",
+     "class Workspace(object):\n",
+     "def record_evaluation(step, true_return, learned_return, success_rate, feedback):\n"
+     "    new = not os.path.exists('eval.csv')\n"
+     "    with open('eval.csv', 'a') as f:\n"
+     "        if new:\n"
+     "            f.write('step,episode_reward,true_episode_reward,success_rate,total_feedback\\n')\n"
+     "        f.write(f'{step},{learned_return},{true_return},{success_rate},{feedback}\\n')\n"
+     "    print(f'| eval | S: {step} | TR: {true_return:.4f} | FB: {feedback}', flush=True)\n\n"
+     "class Workspace(object):\n",
+     "its evaluations go to W&B only: a function that writes each to eval.csv and prints it (defined here)"),
+    ("train_QPA.py",
+     "ep_reward, ep_reward_hat, success_rate  = self.evaluate()\n",
+     "ep_reward, ep_reward_hat, success_rate  = self.evaluate()\n                        "
+     "record_evaluation(self.step, ep_reward, ep_reward_hat, success_rate, self.total_feedback)\n",
+     "... called after each evaluation, with the values the evaluation computed"),
+]
+
 
 def apply(tree: Path) -> list[str]:
-    """Applies every edit of EDITS (RIME_EDITS where `tree` has train_RIME.py) to `tree`; returns what it did, one
-    line an edit. An edit already applied is left as it is; a file where neither the original nor the edited text is
+    """Applies every edit of EDITS (RIME_EDITS where `tree` has train_RIME.py, QPA_EDITS where it has train_QPA.py) to
+    `tree`; returns what it did, one line an edit. An edit already applied is left as it is; a file where neither the
+    original nor the edited text is
     found is an error."""
     done = []
-    rime = (tree / "train_RIME.py").is_file()
-    for name, old, new, why in RIME_EDITS if rime else EDITS:
+    edits, source = EDITS, f"BPref at {REFERENCE_COMMIT[:7]}"
+    if (tree / "train_RIME.py").is_file():
+        edits, source = RIME_EDITS, f"RIME's code at {RIME_COMMIT[:7]}"
+    if (tree / "train_QPA.py").is_file():
+        edits, source = QPA_EDITS, f"QPA's code at {QPA_COMMIT[:7]}"
+    for name, old, new, why in edits:
         path = tree / name
         if not path.is_file():
-            source = f"RIME's code at {RIME_COMMIT[:7]}" if rime else f"BPref at {REFERENCE_COMMIT[:7]}"
             raise FileNotFoundError(f"{path}: not found (is {tree} a copy of {source}?)")
         text = path.read_text()
         if new in text:  # first: an edit's new text may contain its old text

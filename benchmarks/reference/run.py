@@ -8,6 +8,7 @@ implementations alike (docs/parity.md):
     python benchmarks/reference/run.py ... --ground-truth-reward    # the reference's train_SAC.py
     python benchmarks/reference/run.py --algorithm prefppo --total-timesteps 1000000 ...   # its train_PrefPPO.py
     python benchmarks/reference/run.py --algorithm rime --teacher mistake --teacher-eps-mistake 0.3 ...  # RIME's code
+    python benchmarks/reference/run.py --algorithm qpa --max-feedback 100 --feedback-per-session 10 ...  # QPA's code
 
 The output directory gets config.json (pebble.py's fields, with "implementation": "reference" and the reference's
 command line), bpref/ (the reference's own files), eval.csv in pebble.py's columns (wall_time from this wrapper's
@@ -22,6 +23,11 @@ RIME (--algorithm rime, rime.py's flags): RIME's own code (CJReinforce/RIME_ICML
 train_RIME.py with the flags of its walker runs (run_parallel.sh); it is written as the reference is, and its results
 are read back the same way. Settings its code fixes (10 evaluation episodes every 10000 steps, segments of 50, 1000
 seed steps, the uniform schedule, a rational teacher) are refused when asked otherwise.
+
+QPA (--algorithm qpa, qpa.py's flags): QPA's own code (huxiao09/QPA, set up by setup_qpa.sh), its train_QPA.py with
+the overrides of its walker_walk run (run_QPA.sh) and these flags; patch.py's edits make it write eval.csv in the
+reference's columns and print each evaluation. Its code asks uniformly from the pool (explore=false), with the uniform
+schedule, and learns rewards by iterations on DMC: other settings are refused.
 
 PrefPPO (--algorithm prefppo, prefppo.py's flags): the reference evaluates no policy and saves none, so its eval.csv
 rows are the true returns of its stochastic training episodes, from its Monitor files: one row per wave of episodes
@@ -59,12 +65,15 @@ FEED_TYPES = {"uniform": 0, "disagreement": 1, "entropy": 2, "coverage": 3, "dis
               "entropy-coverage": 5}  # the reference's feed_type
 REWARD_SCHEDULES = {"uniform": (0, 1.0), "decay": (1, 2.0), "increase": (2, 0.5)}
 """schedule -> (the reference's reward_schedule, the factor its walker scripts apply to the per-session count)"""
-PEBBLE_ONLY = ("seed_steps", "batch_size")  # and rime
+PEBBLE_ONLY = ("seed_steps", "batch_size")  # and rime, qpa
 RIME_ONLY = ("rime_alpha", "rime_beta_max", "rime_beta_min", "rime_decay_epochs", "rime_flip_eps", "rime_min_epochs",
              "rime_warm_updates")
 RIME_FIXED = {"eval_every": 10000, "eval_episodes": 10, "segment_len": 50, "seed_steps": 1000, "schedule": "uniform",
               "rime_decay_epochs": 60, "rime_flip_eps": 0.001, "rime_warm_updates": 5}
 """what RIME's train_RIME.py fixes for DMC tasks (its config and k=60, tau=0.001, 5 warm-start updates per step)"""
+QPA_ONLY = ("her_ratio", "data_aug_ratio", "reward_updates", "query_recent_episodes", "reward_ensemble_size")
+QPA_FIXED = {"sampler": "uniform", "schedule": "uniform"}
+"""what train_QPA.py fixes: uniform sampling from its episode store (explore=false), the uniform schedule"""
 TEACHER_FIELDS = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal")
 PREFPPO_ONLY = ("num_envs", "num_steps", "minibatch_size", "gae_lambda", "update_epochs", "unsup_update_epochs",
                 "clip_coef", "ent_coef", "use_sde", "sde_freq")
@@ -77,9 +86,9 @@ class Args:
 
     output_dir: str
     """where the run's files go (must be empty or absent)"""
-    algorithm: Literal["pebble", "prefppo", "rime"] = "pebble"
+    algorithm: Literal["pebble", "prefppo", "rime", "qpa"] = "pebble"
     """pebble: train_PEBBLE.py (train_SAC.py with --ground-truth-reward); prefppo: train_PrefPPO.py; rime: RIME's
-    train_RIME.py"""
+    train_RIME.py; qpa: QPA's train_QPA.py"""
     env_id: str = "walker-walk"
     """a DMC task, domain-task (the reference's Meta-World needs MuJoCo 2.0)"""
     seed: int = 1
@@ -98,8 +107,8 @@ class Args:
     """override the teacher's eps_equal"""
     sampler: Literal[
         "uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"
-    ] = "disagreement"
-    """query selection (feed_type)"""
+    ] | None = None
+    """query selection (feed_type; None: the script's, qpa.py's uniform, the others' disagreement)"""
     schedule: Literal["uniform", "decay", "increase"] = "uniform"
     """feedback schedule (reward_schedule; per-session count x2 / x0.5 as the reference's walker scripts)"""
     max_feedback: int | None = None
@@ -160,6 +169,16 @@ class Args:
     """RIME: warm-start updates per pre-training step (fixed: 5)"""
     reward_epochs: int | None = None
     """most reward epochs per session (reward_update)"""
+    her_ratio: float | None = None
+    """QPA: share of the batch from the recent episodes (her_ratio)"""
+    data_aug_ratio: int | None = None
+    """QPA: crops per labelled pair (data_aug_ratio)"""
+    reward_updates: int | None = None
+    """QPA: reward-learning steps per label per batch (reward_update on DMC)"""
+    query_recent_episodes: int | None = None
+    """QPA: episodes of the query pool (max_reward_buffer_size)"""
+    reward_ensemble_size: int | None = None
+    """QPA: reward models (ensemble_size)"""
     eval_every: int = 10000
     """steps between evaluations (eval_frequency)"""
     eval_episodes: int = 10
@@ -183,25 +202,31 @@ def resolve(args: Args) -> str | None:
         return "--ground-truth-reward: only with --algorithm pebble (the reference's train_SAC.py)"
     if args.algorithm == "prefppo" and args.schedule != "uniform":
         return "--schedule: the reference's PrefPPO has the uniform schedule only"
-    if args.algorithm == "prefppo" and args.sampler not in ("uniform", "disagreement", "entropy"):
-        return "--sampler: the reference's PrefPPO has uniform, disagreement and entropy sampling only"
-    if args.algorithm == "rime" and args.ground_truth_reward:
+    if args.algorithm in ("rime", "qpa") and args.ground_truth_reward:
         return "--ground-truth-reward: only with --algorithm pebble (the reference's train_SAC.py)"
     defaults = module.task_defaults(args.env_id, args.teacher)  # the script's values for the task
     for field in fields(Args):
         if getattr(args, field.name) is None and field.name not in other and not field.name.startswith("teacher_"):
             setattr(args, field.name, getattr(defaults, field.name))
+    if args.algorithm == "prefppo" and args.sampler not in ("uniform", "disagreement", "entropy"):
+        return "--sampler: the reference's PrefPPO has uniform, disagreement and entropy sampling only"
     if args.algorithm == "rime" and math.isfinite(teacher_of(args).beta):
         return f"--teacher {args.teacher}: RIME's code has rational teachers only (beta = inf)"
     for name, value in RIME_FIXED.items() if args.algorithm == "rime" else ():
         if getattr(args, name) != value:
             return f"--{name.replace('_', '-')} {getattr(args, name)}: RIME's code has {value} only"
+    for name, value in QPA_FIXED.items() if args.algorithm == "qpa" else ():
+        if getattr(args, name) != value:
+            return f"--{name.replace('_', '-')} {getattr(args, name)}: QPA's code has {value} only"
+    if args.algorithm == "qpa" and not (args.reward_updates and args.query_recent_episodes):
+        return "--reward-updates and --query-recent-episodes: QPA's code needs both >= 1 on DMC"
     return None
 
 
 def not_settings(algorithm: str) -> tuple[str, ...]:
     """Args fields that are no setting of this algorithm."""
-    return {"pebble": PREFPPO_ONLY + RIME_ONLY, "prefppo": PEBBLE_ONLY + RIME_ONLY, "rime": PREFPPO_ONLY}[algorithm]
+    return {"pebble": PREFPPO_ONLY + RIME_ONLY + QPA_ONLY, "prefppo": PEBBLE_ONLY + RIME_ONLY + QPA_ONLY,
+            "rime": PREFPPO_ONLY + QPA_ONLY, "qpa": PREFPPO_ONLY + RIME_ONLY}[algorithm]
 
 
 def teacher_of(args: Args):
@@ -227,6 +252,28 @@ def rime_command(args: Args) -> list[str]:
              "--threshold_beta_min": args.rime_beta_min, "--eps_mistake": teacher.eps_mistake,
              "--eps_skip": teacher.eps_skip, "--eps_equal": teacher.eps_equal, "--teacher_gamma": teacher.gamma}
     return ["train_RIME.py", *[f"{flag}={value}" for flag, value in flags.items()]]
+
+
+def qpa_command(args: Args) -> list[str]:
+    """train_QPA.py and its hydra overrides for qpa.py's flags (its walker_walk run in run_QPA.sh: tanh rewards,
+    explore=false, one gradient update a step)."""
+    teacher = teacher_of(args)
+    overrides = {"env": reference_env(args.env_id), "seed": args.seed, "device": "cuda" if args.cuda else "cpu",
+                 "num_train_steps": args.total_timesteps + 1, "num_seed_steps": args.seed_steps,
+                 "num_unsup_steps": args.unsup_steps, "agent.params.actor_lr": args.learning_rate,
+                 "agent.params.critic_lr": args.learning_rate, "agent.params.batch_size": args.batch_size,
+                 **{f"{net}.params.{key}": value for net in ("diag_gaussian_actor", "double_q_critic")
+                    for key, value in (("hidden_dim", args.hidden_dim), ("hidden_depth", args.num_layers))},
+                 "eval_frequency": args.eval_every, "num_eval_episodes": args.eval_episodes,
+                 "num_interact": args.feedback_every, "max_feedback": args.max_feedback,
+                 "reward_batch": args.feedback_per_session, "reward_update": args.reward_updates,
+                 "segment": args.segment_len, "gradient_update": 1, "activation": "tanh",
+                 "teacher_beta": -1 if math.isinf(teacher.beta) else teacher.beta, "teacher_gamma": teacher.gamma,
+                 "teacher_eps_mistake": teacher.eps_mistake, "teacher_eps_skip": teacher.eps_skip,
+                 "teacher_eps_equal": teacher.eps_equal, "max_reward_buffer_size": args.query_recent_episodes,
+                 "data_aug_ratio": args.data_aug_ratio, "ensemble_size": args.reward_ensemble_size,
+                 "explore": "false", "her_ratio": args.her_ratio, "wandb": "false"}
+    return ["train_QPA.py", *[f"{key}={value}" for key, value in overrides.items()]]
 
 
 def prefppo_command(args: Args, log_dir: Path) -> list[str]:
@@ -320,8 +367,9 @@ def converted_rows(bpref_dir: Path, wall_times: list[float]) -> list[dict]:
         later = [value for at, value in feedback if at > step] or [value for _, value in feedback[-1:]] or [0.0]
         returns = row.get("true_episode_reward") or row["episode_reward"]
         success = float(row["success_rate"]) / 100 if row.get("success_rate") else math.nan  # Meta-World: percent
+        asked = float(row["total_feedback"]) if row.get("total_feedback") else later[0]  # QPA's (patch.py)
         rows.append({"step": step, "episode_return": float(returns), "episode_return_std": math.nan,
-                     "success_rate": success, "feedback": later[0],
+                     "success_rate": success, "feedback": asked,
                      "reward_correlation": math.nan, "wall_time": wall_times[i] if i < len(wall_times) else math.nan})
     return rows
 
@@ -446,6 +494,11 @@ def main(args: Args) -> int:
             print(f"error: no RIME code in {reference}: run benchmarks/reference/setup_rime.sh first",
                   file=sys.stderr)
             return 2
+    if args.algorithm == "qpa":
+        tree = reference / "QPA"
+        if not (tree / "train_QPA.py").exists():
+            print(f"error: no QPA code in {reference}: run benchmarks/reference/setup_qpa.sh first", file=sys.stderr)
+            return 2
     with warnings.catch_warnings(action="ignore"):  # GLFW's "failed to open display" on a headless machine
         from dm_control import suite
     if metaworld and args.algorithm != "pebble":
@@ -465,10 +518,14 @@ def main(args: Args) -> int:
     elif args.algorithm == "rime":  # it writes under its working directory: RIME/<env>/
         command = rime_command(args)
         bpref.mkdir()
+    elif args.algorithm == "qpa":
+        command = qpa_command(args) + [f"hydra.run.dir={bpref}"]
     else:
         command = reference_command(args) + [f"hydra.run.dir={bpref}"]
     (out / "config.json").write_text(json.dumps(our_config(args, command), indent=2))
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONWARNINGS="ignore")
+    if args.algorithm == "qpa":  # its tqdm bar: a line a minute in the log
+        env["TQDM_MININTERVAL"] = "60"
     start, wall_times = time.time(), []
     launch = command
     if args.algorithm == "prefppo":  # its r_hat against the true reward per rollout, as prefppo.py logs it
@@ -483,7 +540,7 @@ def main(args: Args) -> int:
     try:
         for line in process.stdout:
             print(line, end="", flush=True)
-            if line.startswith("| eval"):  # PEBBLE and SAC: an evaluation
+            if "| eval |" in line:  # PEBBLE, SAC and QPA: an evaluation (QPA's may follow its tqdm bar)
                 wall_times.append(round(time.time() - start, 1))
                 write_eval(out, converted_rows(bpref, wall_times))
             if "total_timesteps" in line:  # PrefPPO: the end of a rollout's update
