@@ -143,17 +143,17 @@ PRESETS = {
 }
 
 
-# Each task's CPU scale for Console's note: experiments/grid.py's preset, its flags, a run's wall time
-# on one core of a 2-core machine (the runs kept under docs/); other tasks: walker-walk's
+# Console's note: each task's CPU scale (grid preset, flags, a run's time on one core)
 CPU_SCALES = {
-    "walker-walk": ("learning-cpu-pebble", "--total-timesteps 100000 --hidden-dim 256 --num-layers 2 "
-                    "--batch-size 256 --feedback-every 9000", "22-29 min"),
-    "quadruped-walk": ("quadruped-walk-cpu", "--total-timesteps 250000 --hidden-dim 256 --num-layers 2 "
-                       "--batch-size 256 --feedback-every 24000", "1.1-3.2 h"),
-    "button-press": ("button-press-cpu", "--total-timesteps 100000 --hidden-dim 256 --num-layers 2 "
-                     "--batch-size 256 --max-feedback 900", "24-84 min"),
-    "sweep-into": ("sweep-into-cpu-250k", "--total-timesteps 250000 --hidden-dim 256 --num-layers 2 "
-                   "--batch-size 256 --max-feedback 2400", "2.3-3.0 h"),
+    "walker-walk": "walker-walk, experiments/grid.py learning-cpu-pebble (--total-timesteps 100000 "
+    "--hidden-dim 256 --num-layers 2 --batch-size 256 --feedback-every 9000), took 22-29 min",
+    "quadruped-walk": "quadruped-walk, experiments/grid.py quadruped-walk-cpu (--total-timesteps "
+    "250000 --hidden-dim 256 --num-layers 2 --batch-size 256 --feedback-every 24000), took "
+    "1.1-3.2 h",
+    "button-press": "button-press, experiments/grid.py button-press-cpu (--total-timesteps 100000 "
+    "--hidden-dim 256 --num-layers 2 --batch-size 256 --max-feedback 900), took 24-84 min",
+    "sweep-into": "sweep-into, experiments/grid.py sweep-into-cpu-250k (--total-timesteps 250000 "
+    "--hidden-dim 256 --num-layers 2 --batch-size 256 --max-feedback 2400), took 2.3-3.0 h",
 }
 
 
@@ -374,13 +374,13 @@ def temperature_loss(log_alpha, log_prob, target_entropy):
 def optimize(optimizer, loss):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
-    # inputs: no gradients for the other networks the loss passes through (the critic in the actor's)
+    # inputs: no gradients for other networks the loss passes through (the actor's: the critic)
     loss.backward(inputs=[param for group in optimizer.param_groups for param in group["params"]])
     optimizer.step()
 
 
 def adam(params, lr, capturable=False):
-    # fused: one kernel for all parameters' step; capturable: its step count on the GPU (CUDA graphs)
+    # fused: one kernel for all parameters' step; capturable: its step count on the GPU (graphs)
     return torch.optim.Adam(params, lr=lr, fused=True, capturable=capturable)
 
 
@@ -915,8 +915,7 @@ class Console:
         self.planned = 0 if args.ground_truth_reward else planned
         self.metaworld = env_kind(args.env_id) == "metaworld"
         self.on_cpu = device.type == "cpu"
-        task = args.env_id.removesuffix("-v3")
-        self.cpu_task = task if task in CPU_SCALES else "walker-walk"  # the README's for others
+        self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
         self.random_steps = random_steps  # faster than learning: left out of the rate
         self.terminal = sys.stdout.isatty()
         self.clock = time.time() - progress.elapsed
@@ -940,19 +939,15 @@ class Console:
         if step <= self.random_steps:  # the first minute starts with learning
             self.minute_start = now
             self.minute_step = step
-        new_minute = now - self.minute_start >= 60
-        if new_minute:
+        if now - self.minute_start >= 60:
             self.rate = (step - self.minute_step) / (now - self.minute_start)
             self.minute_start = now
             self.minute_step = step
             self.minutes += 1
-        if new_minute and self.minutes == 2 and self.on_cpu:
             hours = (progress.elapsed + (self.total - step) / max(self.rate, 1e-9)) / 3600
-            preset, flags, took = CPU_SCALES[self.cpu_task]
-            if hours > 12:
-                say(f"note: on this CPU the run takes about {hours:.0f} h; {self.cpu_task}'s CPU scale "
-                    f"(experiments/grid.py {preset}: {flags}) took {took} a run on a core of a "
-                    "2-core machine; the run goes on")
+            if self.minutes == 2 and self.on_cpu and hours > 12:
+                say(f"note: on this CPU the run takes about {hours:.0f} h; the CPU scale of "
+                    f"{self.cpu_scale} a run on a core of a 2-core machine; the run goes on")
         if now - self.shown < (1 if self.terminal else 60) and step < self.total:
             return
         self.shown = now
@@ -1117,8 +1112,8 @@ if __name__ == "__main__":
             reward = float(true_reward) if args.ground_truth_reward else 0.0
             if progress.pretrained and not args.ground_truth_reward:
                 with torch.no_grad():
-                    obs_action = torch.as_tensor(np.concatenate([obs, action]), device=device)
-                    reward = learned_reward(reward_model, obs_action)
+                    reward = learned_reward(reward_model, torch.as_tensor(
+                        np.concatenate([obs, action]), device=device))
             buffer.add(obs, action, reward, next_obs, terminated)
             for part, value in zip(progress.running_episode, (obs, action, true_reward)):
                 part.append(np.asarray(value).tolist())
