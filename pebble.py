@@ -143,7 +143,7 @@ PRESETS = {
 }
 
 
-# Console's note: each task's CPU scale (grid preset, flags, a run's time on one core)
+# Console's note: each task's CPU scale
 CPU_SCALES = {
     "walker-walk": "walker-walk, experiments/grid.py learning-cpu-pebble (--total-timesteps 100000 "
     "--hidden-dim 256 --num-layers 2 --batch-size 256 --feedback-every 9000), took 22-29 min",
@@ -374,13 +374,13 @@ def temperature_loss(log_alpha, log_prob, target_entropy):
 def optimize(optimizer, loss):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
-    # inputs: no gradients for other networks the loss passes through (the actor's: the critic)
+    # inputs: not the critic's gradients from the actor's loss
     loss.backward(inputs=[param for group in optimizer.param_groups for param in group["params"]])
     optimizer.step()
 
 
 def adam(params, lr, capturable=False):
-    # fused: one kernel for all parameters' step; capturable: its step count on the GPU (graphs)
+    # fused: one kernel per step; capturable: for CUDA graphs
     return torch.optim.Adam(params, lr=lr, fused=True, capturable=capturable)
 
 
@@ -444,7 +444,7 @@ class ReplayBuffer:
         return Batch(*(getattr(self, name)[idx] for name in Batch._fields))
 
     def state_dict(self):
-        """The filled part only (clones: a slice would save the whole tensor)."""
+        """The filled part (cloned: a slice would save it all)."""
         filled = {name: getattr(self, name)[: self.size].clone() for name in Batch._fields}
         return filled | {"size": self.size, "pos": self.pos}
 
@@ -606,7 +606,7 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
 
 def reset_critic(critic, critic_target, critic_optimizer):
     """PEBBLE after the first reward update: fresh critics and Adam moments."""
-    for layer in critic.modules():  # new weights, drawn as a new TwinCritic draws them
+    for layer in critic.modules():  # drawn as a new TwinCritic's
         if isinstance(layer, nn.Linear):
             layer.reset_parameters()
     orthogonal_init(critic)
@@ -706,7 +706,7 @@ def task_defaults(env_id, teacher):
 
 def parse_args():
     """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
-    # a first pass reads the flags that choose those defaults, which tyro then shows in --help
+    # a first pass: the flags that choose the defaults
     pre = argparse.ArgumentParser(add_help=False)
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
@@ -832,17 +832,17 @@ def load_checkpoint(path):
 
 
 def flat(inputs):
-    """A call's arguments, each Batch opened into its tensors."""
+    """Batches opened."""
     return [x for value in inputs for x in (value if isinstance(value, Batch) else [value])]
 
 
 def signature(inputs):
-    """What a CUDA graph fixes: each tensor's shape and dtype, every other argument itself."""
+    """Each tensor's shape and dtype, other arguments as they are."""
     return [(x.shape, x.dtype) if torch.is_tensor(x) else x for x in flat(inputs)]
 
 
 def graph_input(value):
-    """A CUDA graph's own copy of a tensor or Batch, which later calls copy into."""
+    """The graph's copy of a tensor or Batch."""
     if isinstance(value, Batch):
         return Batch(*map(torch.clone, value))
     return value.clone() if torch.is_tensor(value) else value
@@ -870,7 +870,7 @@ class CudaGraph:
             self.inputs = [graph_input(x) for x in inputs]
             self.signature = signature(inputs)
             self.graph = torch.cuda.CUDAGraph()
-            # torch.compile may not compile anew here: an error, not a compile inside the capture
+            # no compiling inside the capture: an error
             with torch.compiler.set_stance("fail_on_recompile"), torch.cuda.graph(self.graph):
                 self.outputs = self.fn(*self.inputs)
         if signature(inputs) != self.signature:  # else copy_ would broadcast, zip truncate
@@ -916,13 +916,13 @@ class Console:
         self.metaworld = env_kind(args.env_id) == "metaworld"
         self.on_cpu = device.type == "cpu"
         self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
-        self.random_steps = random_steps  # faster than learning: left out of the rate
+        self.random_steps = random_steps  # left out of the rate
         self.terminal = sys.stdout.isatty()
         self.clock = time.time() - progress.elapsed
         self.minute_start = time.time()
         self.minute_step = progress.global_step
-        self.minutes = 0  # of learning
-        self.rate = 0.0  # steps/s over the last full minute of learning
+        self.minutes = 0
+        self.rate = 0.0  # steps/s, the last minute of learning
         self.shown = time.time()
         name = f"the CPU (torch threads: {torch.get_num_threads()})"
         if device.type == "cuda":
@@ -936,7 +936,7 @@ class Console:
         now = time.time()
         progress.elapsed = now - self.clock
         step = progress.global_step
-        if step <= self.random_steps:  # the first minute starts with learning
+        if step <= self.random_steps:  # not yet learning
             self.minute_start = now
             self.minute_step = step
         if now - self.minute_start >= 60:
@@ -1018,7 +1018,7 @@ if __name__ == "__main__":
     rng = np.random.default_rng(sampler_seed)
     action_rng = np.random.default_rng(action_seed)
     torch.manual_seed(args.seed)
-    torch.set_flush_denormal(True)  # tiny floats as 0: on a CPU they slow the arithmetic down
+    torch.set_flush_denormal(True)  # tiny floats as 0: faster on a CPU
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
@@ -1032,7 +1032,7 @@ if __name__ == "__main__":
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
     buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim, device)
     intrinsic_stats = RunningMeanStd()
-    if args.compile:  # the same functions under their names, compiled; on a GPU, CUDA graphs too
+    if args.compile:  # the same names, compiled; on a GPU, CUDA graphs
         sac_update = torch.compile(sac_update)
         learned_reward = torch.compile(learned_reward)
     if graphs:

@@ -153,7 +153,7 @@ PRESETS = {
 }
 
 
-# Console's note: each task's CPU scale (grid preset, flags, a run's time on one core)
+# Console's note: each task's CPU scale
 CPU_SCALES = {
     "walker-walk": "walker-walk, experiments/grid.py parity-prefppo (--total-timesteps 1000000), "
     "took 27-36 min",
@@ -387,14 +387,14 @@ def optimize(optimizer, loss, max_grad_norm=None):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
     params = [param for group in optimizer.param_groups for param in group["params"]]
-    loss.backward(inputs=params)  # no gradients for networks outside this optimizer
+    loss.backward(inputs=params)  # only this optimizer's networks
     if max_grad_norm is not None:
         nn.utils.clip_grad_norm_(params, max_grad_norm)
     optimizer.step()
 
 
 def adam(params, lr, eps=1e-8):
-    # fused: one kernel for all parameters' step
+    # fused: one kernel per step
     return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
 
 
@@ -716,7 +716,7 @@ def task_defaults(env_id, teacher):
 
 def parse_args():
     """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
-    # a first pass reads the flags that choose those defaults, which tyro then shows in --help
+    # a first pass: the flags that choose the defaults
     pre = argparse.ArgumentParser(add_help=False)
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
@@ -873,13 +873,13 @@ class Console:
         self.metaworld = env_kind(args.env_id) == "metaworld"
         self.on_cpu = device.type == "cpu"
         self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
-        self.random_steps = random_steps  # faster than learning: left out of the rate
+        self.random_steps = random_steps  # left out of the rate
         self.terminal = sys.stdout.isatty()
         self.clock = time.time() - progress.elapsed
         self.minute_start = time.time()
         self.minute_step = progress.global_step
-        self.minutes = 0  # of learning
-        self.rate = 0.0  # steps/s over the last full minute of learning
+        self.minutes = 0
+        self.rate = 0.0  # steps/s, the last minute of learning
         self.shown = time.time()
         name = f"the CPU (torch threads: {torch.get_num_threads()})"
         if device.type == "cuda":
@@ -893,7 +893,7 @@ class Console:
         now = time.time()
         progress.elapsed = now - self.clock
         step = progress.global_step
-        if step <= self.random_steps:  # the first minute starts with learning
+        if step <= self.random_steps:  # not yet learning
             self.minute_start = now
             self.minute_step = step
         if now - self.minute_start >= 60:
@@ -974,7 +974,7 @@ if __name__ == "__main__":
     # Seeding: numpy streams, torch, every reset
     rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
-    torch.set_flush_denormal(True)  # tiny floats as 0: on a CPU they slow the arithmetic down
+    torch.set_flush_denormal(True)  # tiny floats as 0: faster on a CPU
     envs = [env] + [make_env(args.env_id)[0] for _ in range(args.num_envs - 1)]
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
