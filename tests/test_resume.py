@@ -281,12 +281,12 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
 
 
 def limit_file_size():
-    """A full disk, as seen by the writer: writes past 2 MiB fail with EFBIG (SIGXFSZ ignored)."""
+    """A full disk, as seen by the writer: writes past 1 MiB fail with EFBIG (SIGXFSZ ignored)."""
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (2 * 2**20, 2 * 2**20))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (2**20, 2**20))
 
 
-# the first evaluation, then the first checkpoint (over 2 MiB: the reward model and its Adam state) at the same step
+# the first evaluation, then the first checkpoint (over 1 MiB: the reward model) at the same step
 FIRST_CHECKPOINT = {"pebble.py": ["--eval-every", "200", "--checkpoint-every", "200"],
                     "prefppo.py": ["--eval-every", "1000", "--checkpoint-every", "1000"]}
 
