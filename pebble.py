@@ -831,14 +831,14 @@ def load_checkpoint(path):
         fail(f"{path} cannot be read ({type(error).__name__}): incomplete, or not a checkpoint")
 
 
-def flat(inputs):
+def flat_inputs(inputs):
     """Batches opened."""
     return [x for value in inputs for x in (value if isinstance(value, Batch) else [value])]
 
 
 def signature(inputs):
     """Each tensor's shape and dtype, other arguments as they are."""
-    return [(x.shape, x.dtype) if torch.is_tensor(x) else x for x in flat(inputs)]
+    return [(x.shape, x.dtype) if torch.is_tensor(x) else x for x in flat_inputs(inputs)]
 
 
 def graph_input(value):
@@ -876,7 +876,7 @@ class CudaGraph:
         if signature(inputs) != self.signature:  # else copy_ would broadcast, zip truncate
             raise ValueError(f"{self.fn.__name__}: its CUDA graph was recorded for other tensor "
                              "shapes, dtypes or arguments than this call's")
-        for fixed, tensor in zip(flat(self.inputs), flat(inputs)):
+        for fixed, tensor in zip(flat_inputs(self.inputs), flat_inputs(inputs)):
             if torch.is_tensor(tensor):
                 fixed.copy_(tensor)
         self.graph.replay()

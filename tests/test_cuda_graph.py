@@ -200,7 +200,7 @@ def test_a_call_with_other_shapes_dtypes_or_arguments_is_refused(graphs):
     for _ in range(5):  # 3 eager calls, the recording, a replay
         good = batch()
         sac_update(good, good.rewards, actor, critic, target, log_alpha, *optimizers, 0.99)
-    held = [t.clone() for t in pebble.flat(sac_update.inputs) if torch.is_tensor(t)]
+    held = [t.clone() for t in pebble.flat_inputs(sac_update.inputs) if torch.is_tensor(t)]
     weights = [p.detach().clone() for p in actor.parameters()]
     smaller, wider = batch(rows=4), batch()
     doubles = batch(dtype=torch.float64)
@@ -214,7 +214,7 @@ def test_a_call_with_other_shapes_dtypes_or_arguments_is_refused(graphs):
     with pytest.raises(ValueError):  # another optimizer than the recorded one
         sac_update(good, good.rewards, actor, critic, target, log_alpha, *optimizers[:2],
                    pebble.adam([log_alpha], 1e-3, capturable), 0.99)
-    assert all(torch.equal(a, b) for a, b in zip(held, (t for t in pebble.flat(sac_update.inputs)
+    assert all(torch.equal(a, b) for a, b in zip(held, (t for t in pebble.flat_inputs(sac_update.inputs)
                                                         if torch.is_tensor(t))))
     assert all(torch.equal(a, b) for a, b in zip(weights, actor.parameters()))  # nothing replayed
     sac_update(good, good.rewards, actor, critic, target, log_alpha, *optimizers, 0.99)  # the same call replays
