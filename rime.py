@@ -601,8 +601,7 @@ def train_reward(reward_model, optimizer, preferences, discriminator, args):
             optimize(optimizer, loss)
             losses.append(loss.detach() / len(reward_model.members))
         discriminator.epochs += 1
-        strict = (labels[train] != 0.5).sum().item()
-        strict = strict * len(reward_model.members)
+        strict = (labels[train] != 0.5).sum().item() * len(reward_model.members)
         accuracy = correct.item() / strict if strict else 0.0  # only equal labels: no accuracy
         if accuracy > 0.98 and epoch > args.rime_min_epochs:
             break
