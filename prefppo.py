@@ -153,8 +153,17 @@ PRESETS = {
 }
 
 
-# docs/results.md's CPU scale, named by Console's note
-CPU_SCALE = "--total-timesteps 1000000"
+# Console's note: each task's CPU scale
+CPU_SCALES = {
+    "walker-walk": "walker-walk, experiments/grid.py parity-prefppo (--total-timesteps 1000000), "
+    "took 27-36 min",
+    "quadruped-walk": "quadruped-walk, experiments/grid.py quadruped-walk-cpu-prefppo "
+    "(--total-timesteps 1000000), took 23-59 min",
+    "button-press": "button-press, experiments/grid.py button-press-cpu-prefppo (--total-timesteps "
+    "1000000 --max-feedback 6100), took 1.5-2.8 h",
+    "sweep-into": "sweep-into, experiments/grid.py sweep-into-cpu-prefppo (--total-timesteps "
+    "1000000 --max-feedback 6100), took 1.6-2.7 h",
+}
 
 
 # Environments
@@ -378,13 +387,14 @@ def optimize(optimizer, loss, max_grad_norm=None):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
     params = [param for group in optimizer.param_groups for param in group["params"]]
-    loss.backward(inputs=params)
+    loss.backward(inputs=params)  # only this optimizer's networks
     if max_grad_norm is not None:
         nn.utils.clip_grad_norm_(params, max_grad_norm)
     optimizer.step()
 
 
 def adam(params, lr, eps=1e-8):
+    # fused: one kernel per step
     return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
 
 
@@ -406,13 +416,13 @@ def ppo_loss(actor, critic, obs, actions, old_logprobs, advantages, returns, cli
 
 
 def ppo_update(obs, actions, logprobs, advantages, returns, actor, critic, optimizer, epochs, clip,
-               args, loss_fn=ppo_loss):
+               args):
     rollout = (obs, actions, logprobs, advantages, returns)
     clip_fractions = []
     for _ in range(epochs):
         order = torch.randperm(len(obs), device=obs.device)
         for minibatch in zip(*[x[order].split(args.minibatch_size) for x in rollout]):
-            loss, stats = loss_fn(actor, critic, *minibatch, clip, args)
+            loss, stats = ppo_loss(actor, critic, *minibatch, clip, args)
             optimize(optimizer, loss, args.max_grad_norm)
             clip_fractions.append(stats["clipfrac"])
     stats = {name: value.detach() for name, value in stats.items()}
@@ -434,12 +444,12 @@ def knn_distance(states, reference, k):
     """Eq. (8) without the log: distance to the k-th nearest other state."""
     distances = torch.cdist(states, reference)
     nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
-    return nearest[:, -1:].contiguous()
+    return nearest[:, -1:].contiguous()  # its statistics then sum in a fixed order
 
 
 @dataclass
 class RunningMeanStd:
-    """Chan et al.'s parallel update, over numpy rows (the first sets the size)."""
+    """SB3's (the reference's), not pebble.py's: per column, float64, counting from 1e-4."""
 
     mean: torch.Tensor = field(default_factory=lambda: torch.zeros(1).double())
     var: torch.Tensor = field(default_factory=lambda: torch.ones(1).double())
@@ -506,7 +516,8 @@ def train_reward(reward_model, optimizer, preferences, args):
                 correct = correct + (right & (y[idx] != 0.5)).sum()
             optimize(optimizer, loss)
             losses.append(loss.detach() / len(reward_model.members))
-        accuracy = correct.item() / ((y != 0.5).sum().item() * len(reward_model.members) or 1)
+        strict = (y != 0.5).sum().item() * len(reward_model.members)
+        accuracy = correct.item() / strict if strict else 0.0  # only equal labels: no accuracy
         if accuracy > 0.97:
             break
     loss = torch.stack(losses).mean().item()
@@ -705,6 +716,7 @@ def task_defaults(env_id, teacher):
 
 def parse_args():
     """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
+    # a first pass: the flags that choose the defaults
     pre = argparse.ArgumentParser(add_help=False)
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
@@ -855,17 +867,19 @@ def duration(seconds):
 class Console:
     """A start line, then progress: in place on a terminal, a line a minute in a file."""
 
-    def __init__(self, args, progress, planned, device):
+    def __init__(self, args, progress, planned, device, random_steps=0):
         self.total = args.total_timesteps
         self.planned = 0 if args.ground_truth_reward else planned
         self.metaworld = env_kind(args.env_id) == "metaworld"
         self.on_cpu = device.type == "cpu"
+        self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
+        self.random_steps = random_steps  # left out of the rate
         self.terminal = sys.stdout.isatty()
         self.clock = time.time() - progress.elapsed
         self.minute_start = time.time()
         self.minute_step = progress.global_step
         self.minutes = 0
-        self.rate = 0.0  # steps/s over the last full minute
+        self.rate = 0.0  # steps/s, the last minute of learning
         self.shown = time.time()
         name = f"the CPU (torch threads: {torch.get_num_threads()})"
         if device.type == "cuda":
@@ -879,27 +893,27 @@ class Console:
         now = time.time()
         progress.elapsed = now - self.clock
         step = progress.global_step
-        new_minute = now - self.minute_start >= 60
-        if new_minute:
+        if step <= self.random_steps:  # not yet learning
+            self.minute_start = now
+            self.minute_step = step
+        if now - self.minute_start >= 60:
             self.rate = (step - self.minute_step) / (now - self.minute_start)
             self.minute_start = now
             self.minute_step = step
             self.minutes += 1
-        if new_minute and self.minutes == 2 and self.on_cpu:
             hours = (progress.elapsed + (self.total - step) / max(self.rate, 1e-9)) / 3600
-            if hours > 12:
-                say(f"note: on this CPU the run takes about {hours:.0f} h; the README's CPU "
-                    f"scale ({CPU_SCALE}) takes under an hour; the run goes on")
-        due = now - self.shown >= 1 if self.terminal else new_minute
-        if due or step >= self.total:
-            self.shown = now
-            self.show(progress, now)
-
-    def show(self, progress, now):
-        step = progress.global_step
-        rate = self.rate or (step - self.minute_step) / max(now - self.minute_start, 1e-9)
-        left = duration((self.total - step) / rate) if rate else "-"
-        text = f"step {step}/{self.total} | {rate:.0f} steps/s | {left} left"
+            if self.minutes == 2 and self.on_cpu and hours > 12:
+                say(f"note: on this CPU the run takes about {hours:.0f} h; the CPU scale of "
+                    f"{self.cpu_scale} a run on a core of a 2-core machine; the run goes on")
+        if now - self.shown < (1 if self.terminal else 60) and step < self.total:
+            return
+        self.shown = now
+        rate = "-"
+        left = "-"
+        if self.rate:
+            rate = f"{self.rate:.1f}" if self.rate < 10 else f"{self.rate:.0f}"
+            left = duration((self.total - step) / self.rate)
+        text = f"step {step}/{self.total} | {rate} steps/s | {left} left"
         if progress.eval_rows:
             text += f" | eval return {progress.eval_rows[-1]['episode_return']:.1f}"
         if progress.eval_rows and self.metaworld:
@@ -960,7 +974,7 @@ if __name__ == "__main__":
     # Seeding: numpy streams, torch, every reset
     rng = np.random.default_rng(sampler_seed)
     torch.manual_seed(args.seed)
-    torch.set_flush_denormal(True)
+    torch.set_flush_denormal(True)  # tiny floats as 0: faster on a CPU
     envs = [env] + [make_env(args.env_id)[0] for _ in range(args.num_envs - 1)]
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers, args.use_sde).to(device)
     critic = make_critic(obs_dim, args.hidden_dim, args.num_layers).to(device)
@@ -969,9 +983,11 @@ if __name__ == "__main__":
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
     obs_stats = RunningMeanStd()
     knn_reward = KnnStateEntropy(k=args.knn_k)
-    loss_fn = torch.compile(ppo_loss) if args.compile else ppo_loss
+    if args.compile:  # ppo_update calls it by this name
+        ppo_loss = torch.compile(ppo_loss)
     # Feedback sessions at rollout ends, from the end of pre-training
     rollout = args.num_envs * args.num_steps
+    # a session opens a rollout: none at the last step
     steps = session_steps(args.unsup_steps, args.feedback_every, args.total_timesteps - 1, rollout)
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session,
                                    steps, args.total_timesteps)
@@ -995,10 +1011,11 @@ if __name__ == "__main__":
     raw_obs = np.stack([restart_env(env, args, progress, i) for i, env in enumerate(envs)])
     # The rollout: raw and normalised observations, sampled and clipped (executed) actions
     shape = (args.num_steps, args.num_envs)
-    raw_obs_buf, obs_buf = torch.zeros(2, *shape, obs_dim, device=device)
-    actions_buf, env_actions_buf = torch.zeros(2, *shape, action_dim, device=device)
-    logprobs_buf, values_buf, next_values_buf, rewards_buf, ends_buf = torch.zeros(
-        5, *shape, device=device)
+    raw_obs_buf, obs_buf = (torch.zeros(*shape, obs_dim, device=device) for _ in range(2))
+    actions_buf, env_actions_buf = (torch.zeros(*shape, action_dim, device=device)
+                                    for _ in range(2))
+    logprobs_buf, values_buf, next_values_buf, rewards_buf, ends_buf = (
+        torch.zeros(shape, device=device) for _ in range(5))
     stop = []  # SIGTERM or SIGINT: checkpoint after this rollout, then exit
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda signum, frame: stop.append(signum))
@@ -1039,8 +1056,9 @@ if __name__ == "__main__":
                 obs_buf[t] = obs
                 actions_buf[t] = action
                 env_actions_buf[t] = env_action
-                rewards_buf[t] = torch.as_tensor(true_reward)
-                if not progress.pretrained:  # Algorithm 2's r_int(s_t)
+                if progress.pretrained:  # the true reward: r_hat's replaces it below
+                    rewards_buf[t] = torch.as_tensor(true_reward)
+                else:  # Algorithm 2's r_int(s_t)
                     rewards_buf[t] = knn_reward(torch.from_numpy(raw_obs))
                 ends_buf[t] = torch.as_tensor(ends)
                 with torch.no_grad():  # time limits bootstrapped
@@ -1063,12 +1081,13 @@ if __name__ == "__main__":
                                               args.gamma, args.gae_lambda)
 
             # PPO update (appendix Eqs. (4)-(5))
-            clip = clip_range(args.clip_coef, global_step, args.total_timesteps)
+            # a tensor: --compile's loss then does not recompile for each new clip range
+            clip = torch.tensor(clip_range(args.clip_coef, global_step, args.total_timesteps),
+                                device=device)
             epochs = args.update_epochs if progress.pretrained else args.unsup_update_epochs
             batch = [x.flatten(0, 1) for x in (obs_buf, actions_buf, logprobs_buf, advantages,
                                                returns)]
-            losses = ppo_update(*batch, actor, critic, optimizer, epochs,
-                                torch.tensor(clip, device=device), args, loss_fn)
+            losses = ppo_update(*batch, actor, critic, optimizer, epochs, clip, args)
             explained = 1 - (returns - values_buf).var() / returns.var().clamp(1e-8)
             losses["explained_variance"] = explained
             for name, value in losses.items():
@@ -1080,8 +1099,8 @@ if __name__ == "__main__":
                 policy = mean_policy(actor, obs_stats, device)
                 evaluation(args, global_step, progress, policy, reward_model, eval_env, writer,
                            device)
-            if (args.checkpoint_every and global_step % args.checkpoint_every < rollout
-                    or stop or global_step >= args.total_timesteps):
+            periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every < rollout
+            if periodic or stop or global_step >= args.total_timesteps:
                 if global_step >= args.total_timesteps:  # before the checkpoint
                     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                                    "reward_model": reward_model.state_dict(),

@@ -1,12 +1,13 @@
-"""Size and write/read time of a paper-scale pebble.py checkpoint: walker-walk's full 1M-transition replay
-buffer, 1024 x 2 SAC networks with their Adam states, the reward ensemble; written as the script writes it
-(serialised in memory, then save_file: a temporary file, fsync, rename).
+"""Size and write/read time of pebble.py's checkpoint at the card's sizes (the README's first command: quadruped-walk,
+1M steps, so a 1M-transition replay buffer; 1024 x 2 SAC networks with their Adam states; the reward ensemble with
+its Adam state), with the buffer filled to 1K, 100K and 1M transitions: a checkpoint holds the filled part of the
+buffer only. Written as the script writes it (snapshot, serialised in memory, then save_file: a temporary file,
+fsync, rename) and read as --resume reads it (torch.load, then each part's load_state_dict).
 
-    python benchmarks/checkpoint_cost.py [--transitions 1000000] [--repeats 3]
+    python benchmarks/checkpoint_cost.py [--filled 1000 100000 1000000] [--repeats 3]
 """
 
 import argparse
-import io
 import os
 import sys
 import tempfile
@@ -17,45 +18,50 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pebble  # noqa: E402
-import sim_teacher  # noqa: E402
+
+CAPACITY = 1_000_000  # quadruped-walk's --total-timesteps: the buffer's capacity
+HIDDEN, LAYERS = 1024, 2
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--transitions", type=int, default=1_000_000)
+    parser.add_argument("--filled", type=int, nargs="+", default=[1_000, 100_000, 1_000_000])
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
 
-    env, _ = pebble.make_env("walker-walk")
+    env, _ = pebble.make_env("quadruped-walk")
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    buffer = pebble.ReplayBuffer(args.transitions, obs_dim, action_dim)
-    for name in pebble.Batch._fields:
+    buffer = pebble.ReplayBuffer(CAPACITY, obs_dim, action_dim)
+    parts = {"actor": pebble.Actor(obs_dim, action_dim, HIDDEN, LAYERS),
+             "critic": pebble.TwinCritic(obs_dim, action_dim, HIDDEN, LAYERS),
+             "critic_target": pebble.TwinCritic(obs_dim, action_dim, HIDDEN, LAYERS),
+             "reward_model": pebble.RewardEnsemble(obs_dim, action_dim, 3)}
+    for name, net in list(parts.items()):  # Adam's two moments per parameter, as after training
+        optimizer = pebble.adam(net.parameters(), 1e-4)
+        pebble.optimize(optimizer, sum(p.sum() for p in net.parameters()))
+        parts[f"{name}_optimizer"] = optimizer
+    parts["buffer"] = buffer
+    for name in pebble.Batch._fields:  # random contents (zeros would not show what the disk costs)
         getattr(buffer, name).normal_()
-    buffer.size = args.transitions
-    networks = {"actor": pebble.Actor(obs_dim, action_dim, 1024, 2),
-                "critic": pebble.TwinCritic(obs_dim, action_dim, 1024, 2),
-                "critic_target": pebble.TwinCritic(obs_dim, action_dim, 1024, 2),
-                "reward_model": pebble.RewardEnsemble(obs_dim, action_dim, 3)}
-    optimizers = {}
-    for name, net in networks.items():  # Adam's two moments per parameter, as after training
-        optimizers[f"{name}_optimizer"] = torch.optim.Adam(net.parameters())
-        sum(p.sum() for p in net.parameters()).backward()
-        optimizers[f"{name}_optimizer"].step()
-    checkpoint = {**{k: v.state_dict() for k, v in {**networks, **optimizers}.items()},
-                  "buffer": buffer.state_dict()}
 
+    print(f"pebble.py checkpoint, quadruped-walk (obs {obs_dim}, action {action_dim}), {HIDDEN} x {LAYERS} networks, "
+          f"a {CAPACITY:,}-transition buffer; best of {args.repeats}\n")
+    print("| transitions in the buffer | checkpoint size (MiB) | write (s) | read (s) |")
+    print("|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(dir=".") as folder:
         path = os.path.join(folder, "checkpoint.pt")
-        writes, reads = [], []
-        for _ in range(args.repeats):
-            start = time.perf_counter()
-            data = io.BytesIO()
-            torch.save(checkpoint, data)
-            sim_teacher.save_file(path, data.getvalue())
-            writes.append(time.perf_counter() - start)
-            start = time.perf_counter()
-            torch.load(path, weights_only=True)
-            reads.append(time.perf_counter() - start)
-        size = os.path.getsize(path)
-    print(f"| transitions | checkpoint size (MiB) | write, best of {args.repeats} (s) | read, best of {args.repeats} (s) |")
-    print("|---|---|---|---|")
-    print(f"| {args.transitions:,} | {size / 2**20:.0f} | {min(writes):.2f} | {min(reads):.2f} |")
+        for filled in args.filled:
+            buffer.size = filled
+            buffer.pos = filled % CAPACITY
+            writes, reads = [], []
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                pebble.save_checkpoint(path, parts)
+                writes.append(time.perf_counter() - start)
+                start = time.perf_counter()
+                state = torch.load(path, weights_only=True)
+                for name, part in parts.items():
+                    part.load_state_dict(state[name])
+                reads.append(time.perf_counter() - start)
+                del state
+            print(f"| {filled:,} | {os.path.getsize(path) / 2**20:.1f} | {min(writes):.2f} | {min(reads):.2f} |",
+                  flush=True)

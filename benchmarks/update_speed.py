@@ -96,7 +96,7 @@ def sac_variants(hidden, layers, batch, device, env_steps: bool):
     env, _ = pebble.make_env("walker-walk")
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     torch.manual_seed(0)
-    buffer = pebble.ReplayBuffer(100_000, obs_dim, action_dim).to(device)
+    buffer = pebble.ReplayBuffer(100_000, obs_dim, action_dim, device)
     obs, _ = env.reset(seed=0)
     rng = np.random.default_rng(0)
 
@@ -157,11 +157,14 @@ def ppo_variants(device, updates: int):
     plain_optimizer = torch.optim.Adam(params, lr=5e-5, eps=1e-5)
     n = min(rollout, updates * minibatch)  # the first `updates` minibatches of the epoch
 
-    clip, compiled_loss = torch.tensor(0.4, device=device), torch.compile(prefppo.ppo_loss)
+    clip = torch.tensor(0.4, device=device)
+    eager_loss, compiled_loss = prefppo.ppo_loss, torch.compile(prefppo.ppo_loss)
 
-    def script_epoch(loss_fn=prefppo.ppo_loss):
+    def script_epoch(loss_fn=eager_loss):
+        prefppo.ppo_loss = loss_fn  # as prefppo.py's main block with --compile: ppo_update calls it by this name
         prefppo.ppo_update(obs[:n], actions[:n], logprobs[:n], advantages[:n], returns[:n], actor, critic,
-                           optimizer, 1, clip, args, loss_fn)
+                           optimizer, 1, clip, args)
+        prefppo.ppo_loss = eager_loss
 
     def plain_epoch():
         order = torch.randperm(n, device=device)

@@ -320,6 +320,55 @@ def test_relabel_covers_the_whole_wrapped_buffer():
     assert not (buffer.rewards == 123.0).any()
 
 
+def test_a_checkpoint_holds_the_filled_part_of_the_replay_buffer_and_restores_it_exactly(tmp_path):
+    """1,000 of 100,000 transitions: the saved buffer is 1% of the full one (a slice would save the whole tensor);
+    a fresh buffer loaded from it samples what the original samples. Once wrapped, all of it, with its write
+    position."""
+    buffer = pebble.ReplayBuffer(capacity=100_000, obs_dim=24, action_dim=6)
+    rng = np.random.default_rng(0)
+    for _ in range(1000):
+        buffer.add(rng.normal(size=24), rng.uniform(-1, 1, 6), rng.normal(), rng.normal(size=24), False)
+    state = buffer.state_dict()
+    assert state["size"] == state["pos"] == 1000 and {len(state[name]) for name in pebble.Batch._fields} == {1000}
+    pebble.save_whole(str(tmp_path / "part.pt"), state)
+    full = {name: getattr(buffer, name) for name in pebble.Batch._fields}
+    pebble.save_whole(str(tmp_path / "full.pt"), full)
+    assert (tmp_path / "part.pt").stat().st_size < 0.02 * (tmp_path / "full.pt").stat().st_size
+    restored = pebble.ReplayBuffer(capacity=100_000, obs_dim=24, action_dim=6)
+    restored.load_state_dict(torch.load(tmp_path / "part.pt", weights_only=True))
+    for name in pebble.Batch._fields:
+        assert torch.equal(getattr(restored, name), getattr(buffer, name))  # the rest zeros in both
+    torch.manual_seed(1)
+    sampled = buffer.sample(64)
+    torch.manual_seed(1)
+    assert all(torch.equal(a, b) for a, b in zip(sampled, restored.sample(64)))
+
+    wrapped = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1)
+    for i in range(13):
+        wrapped.add(np.array([i]), np.array([-i]), float(i), np.array([i + 1]), i % 2)
+    again = pebble.ReplayBuffer(capacity=8, obs_dim=1, action_dim=1)
+    again.load_state_dict(wrapped.state_dict())
+    assert (again.size, again.pos) == (8, 5)
+    assert again.obs[:, 0].tolist() == [8, 9, 10, 11, 12, 5, 6, 7]
+    again.add(np.array([13]), np.array([-13]), 13.0, np.array([14]), False)  # overwrites the oldest, 5
+    assert again.obs[5, 0] == 13
+
+
+def test_the_critic_reset_draws_the_weights_a_new_twin_critic_draws():
+    """In place (a CUDA graph holds the critic's tensors), with what the reference's new critic would have: under the
+    same random state, the weights of TwinCritic(...)."""
+    critic, target = pebble.TwinCritic(3, 2, 8, 2), pebble.TwinCritic(3, 2, 8, 2)
+    held = list(critic.parameters())
+    optimizer = pebble.adam(critic.parameters(), 1e-3)
+    torch.manual_seed(7)
+    pebble.reset_critic(critic, target, optimizer)
+    torch.manual_seed(7)
+    fresh = pebble.TwinCritic(3, 2, 8, 2)
+    assert list(critic.parameters()) == held
+    assert all(torch.equal(a, b) for a, b in zip(critic.state_dict().values(), fresh.state_dict().values()))
+    assert all(torch.equal(a, b) for a, b in zip(target.state_dict().values(), fresh.state_dict().values()))
+
+
 def test_preference_loss_is_cross_entropy_of_eq3():
     returns = torch.tensor([[0.0, 10.0], [2.0, 2.0]])
     # y = 1 (second preferred): -log sigmoid(10); y = 0 on equal returns: -log 0.5

@@ -281,12 +281,12 @@ def test_output_directory_failures_are_one_line_and_destroy_nothing(script, tmp_
 
 
 def limit_file_size():
-    """A full disk, as seen by the writer: writes past 2 MiB fail with EFBIG (SIGXFSZ ignored)."""
+    """A full disk, as seen by the writer: writes past 1 MiB fail with EFBIG (SIGXFSZ ignored)."""
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (2 * 2**20, 2 * 2**20))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (2**20, 2**20))
 
 
-# the first evaluation, then the first checkpoint (over 2 MiB: the reward model and its Adam state) at the same step
+# the first evaluation, then the first checkpoint (over 1 MiB: the reward model) at the same step
 FIRST_CHECKPOINT = {"pebble.py": ["--eval-every", "200", "--checkpoint-every", "200"],
                     "prefppo.py": ["--eval-every", "1000", "--checkpoint-every", "1000"]}
 
@@ -336,3 +336,32 @@ def test_a_failed_final_model_write_is_one_line_and_resume_finishes_the_run(scri
     assert_same_run(out, uninterrupted[script])
     final, reference = (torch.load(run / "final_model.pt", weights_only=True) for run in (out, uninterrupted[script]))
     torch.testing.assert_close(final, reference)
+
+
+BEFORE = "0cfa25a"  # the scripts before the progress line, the checkpoints and the main loop's calls were reworked
+
+
+@pytest.mark.parametrize("script", WITH_RIME)
+def test_fixed_seed_runs_write_what_the_scripts_wrote_before_the_rework(script, tmp_path, uninterrupted):
+    """The rework changed no result: each tiny run writes the eval.csv (all but its wall times) and the label files
+    of the same run of the scripts at BEFORE (with their sim_teacher.py and samplers.py), value for value."""
+    old = tmp_path / "old"
+    old.mkdir()
+    files = [script, "sim_teacher.py", "samplers.py"]
+    archive = subprocess.run(["git", "archive", BEFORE, *files], cwd=ROOT, capture_output=True)
+    if archive.returncode:
+        pytest.skip(f"no git history with {BEFORE} here")
+    subprocess.run(["tar", "-x", "-C", str(old)], input=archive.stdout, check=True)
+    result = run_script(str(old / script), old / "run", *RUNS[script])
+    assert result.returncode == 0, result.stderr[-3000:]
+    new_rows, old_rows = eval_rows(uninterrupted[script]), eval_rows(old / "run")
+    assert len(new_rows) == len(old_rows) > 0
+    for new, before in zip(new_rows, old_rows):
+        assert {k: v for k, v in new.items() if k != "wall_time"} == {k: v for k, v in before.items()
+                                                                       if k != "wall_time"}
+    new_labels, old_labels = saved_labels(uninterrupted[script]), saved_labels(old / "run")
+    assert len(new_labels) == len(old_labels) == 3
+    for new, before in zip(new_labels, old_labels):
+        assert new.keys() == before.keys()
+        for key in new:
+            np.testing.assert_array_equal(new[key], before[key], err_msg=key)

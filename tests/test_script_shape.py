@@ -12,7 +12,7 @@ import pytest
 from benchmarks.script_size import ROOT, content_tokens, main_loop_lines, prose_characters
 
 SCRIPTS = ("pebble.py", "prefppo.py", "rime.py", "qpa.py")
-SIZE_LIMIT = {"pebble.py": 9000, "prefppo.py": 9000, "rime.py": 10100, "qpa.py": 9500}  # tokens today, rounded up: a regression guard
+SIZE_LIMIT = {"pebble.py": 9200, "prefppo.py": 9050, "rime.py": 10250, "qpa.py": 9700}  # tokens today, rounded up: a regression guard
 # Plumbing that is the same code in both scripts (CleanRL's way: each script stands alone)
 # and reward learning, which is the same algorithm in both; restore differs by SAC's temperature tensor
 SHARED = ("DMCEnv", "MetaWorldSeeding", "env_kind", "make_env", "numpy_seeds", "episode_seed", "knn_distance",
@@ -35,7 +35,7 @@ def definitions(script: str) -> dict[str, str]:
 def test_lines_prose_and_main_loop_stay_within_the_goals(script):
     text = source(script)
     assert max(map(len, text.splitlines())) <= 100
-    assert prose_characters(text) <= 7000  # 6,000 before the console, 6,600 before --compile's CUDA graphs
+    assert prose_characters(text) <= 7700  # 6,000 before the console, 7,000 before the reader's list's comments
     assert 40 <= main_loop_lines(text) <= 100  # found, and short
     assert len(content_tokens(text)) <= SIZE_LIMIT[script]
     names = [t.string for t in tokenize.generate_tokens(io.StringIO(text).readline) if t.type == tokenize.NAME]
@@ -75,12 +75,13 @@ def top_level(script: str) -> dict[str, str]:
 
 
 def test_rime_is_pebble_with_rime_s_parts_only():
-    """`diff pebble.py rime.py` shows RIME: its flags, their ranges and Meta-World's settings, the discriminator in reward learning,
+    """`diff pebble.py rime.py` shows RIME: its flags, their ranges and Meta-World's settings, its CPU scale's wall time, the
+    discriminator in reward learning,
     the true label kept to score it, the warm start (and the kNN reward's extremes it needs), no critic reset; every
     other definition is pebble.py's, and the main block differs only in lines that name RIME's parts."""
     pebble, rime = top_level("pebble.py"), top_level("rime.py")
     changed = {name for name in pebble.keys() & rime.keys() if pebble[name] != rime[name]}
-    assert changed == {"Args", "PRESETS", "RANGES", "RunningMeanStd", "train_reward", "add_labels",
+    assert changed == {"Args", "PRESETS", "CPU_SCALES", "RANGES", "RunningMeanStd", "train_reward", "add_labels",
                        "feedback_session", "check_args"}
     assert pebble.keys() - rime.keys() == {"reset_critic"} and rime.keys() - pebble.keys() == {"Discriminator",
                                                                                                  "warm_start"}
