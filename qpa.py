@@ -11,8 +11,7 @@ import time
 import warnings
 from collections import deque, namedtuple
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
-from functools import partial
-from typing import Literal
+from typing import Annotated, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -42,8 +41,8 @@ class Args:
     """if toggled, record each evaluation's first episode to videos/"""
     compile: bool = False
     """if toggled, compile the SAC update and r_hat; on a GPU, replay whole steps as CUDA graphs"""
-    output_dir: str = ""
-    """where the run's files go ('': runs/<run name>)"""
+    output_dir: Annotated[str, tyro.conf.arg(help_behavior_hint="(default: runs/<run name>)")] = ""
+    """where the run's files go"""
     checkpoint_every: int = 50000
     """steps between checkpoints (0: at the end and on SIGTERM/SIGINT)"""
     resume: str = ""
@@ -151,8 +150,12 @@ PRESETS = {
 }
 
 
-# The README's CPU scale, named by Console's note
-CPU_SCALE = "--total-timesteps 100000 --hidden-dim 256 --num-layers 2 --batch-size 256"
+# Console's note: each task's CPU scale
+CPU_SCALES = {
+    "walker-walk": "walker-walk, experiments/grid.py qpa-walker-1000 (--total-timesteps 100000 "
+    "--hidden-dim 256 --num-layers 2 --batch-size 256 --feedback-every 9000), took 22-29 min for "
+    "pebble.py",
+}
 
 
 # Environments
@@ -308,7 +311,6 @@ def mean_policy(actor, device):
 class TwinCritic(nn.Module):
     def __init__(self, obs_dim, action_dim, hidden_dim, num_layers):
         super().__init__()
-        self.sizes = (obs_dim, action_dim, hidden_dim, num_layers)
         self.q1 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
         self.q2 = mlp(obs_dim + action_dim, 1, hidden_dim, num_layers)
         orthogonal_init(self)
@@ -373,11 +375,13 @@ def temperature_loss(log_alpha, log_prob, target_entropy):
 def optimize(optimizer, loss):
     """A gradient step of this optimizer's parameters only."""
     optimizer.zero_grad()
+    # inputs: not the critic's gradients from the actor's loss
     loss.backward(inputs=[param for group in optimizer.param_groups for param in group["params"]])
     optimizer.step()
 
 
 def adam(params, lr, capturable=False):
+    # fused: one kernel per step; capturable: for CUDA graphs
     return torch.optim.Adam(params, lr=lr, fused=True, capturable=capturable)
 
 
@@ -410,15 +414,25 @@ def soft_update(critic, critic_target, tau):
             target_param.lerp_(param, tau)
 
 
-class ReplayBuffer(nn.Module):
+def act(actor, obs):
+    """a ~ pi(.|s) for one observation s."""
+    actions, _ = actor.sample(obs[None])
+    return actions[0]
+
+
+def learned_reward(reward_model, obs_action):
+    """r_hat(s, a): the ensemble's mean."""
+    return reward_model(obs_action).mean()
+
+
+class ReplayBuffer:
     """Transitions, the oldest overwritten when full; rewards are r_hat."""
 
-    def __init__(self, capacity, obs_dim, action_dim):
-        super().__init__()
+    def __init__(self, capacity, obs_dim, action_dim, device=None):
         self.size = 0
         self.pos = 0
         for name, dim in zip(Batch._fields, (obs_dim, action_dim, 1, obs_dim, 1)):
-            self.register_buffer(name, torch.zeros(capacity, dim))
+            setattr(self, name, torch.zeros(capacity, dim, device=device))
 
     def add(self, *transition):
         for name, value in zip(Batch._fields, transition):
@@ -430,18 +444,23 @@ class ReplayBuffer(nn.Module):
         idx = torch.randint(self.size, (batch_size,), device=self.obs.device)
         return Batch(*(getattr(self, name)[idx] for name in Batch._fields))
 
-    def get_extra_state(self):
-        return [self.size, self.pos]
+    def state_dict(self):
+        """The filled part (cloned: a slice would save it all)."""
+        filled = {name: getattr(self, name)[: self.size].clone() for name in Batch._fields}
+        return filled | {"size": self.size, "pos": self.pos}
 
-    def set_extra_state(self, state):
-        self.size, self.pos = state
+    def load_state_dict(self, state):
+        self.size = state["size"]
+        self.pos = state["pos"]
+        for name in Batch._fields:
+            getattr(self, name)[: self.size] = state[name]
 
 
 def knn_distance(states, reference, k):
     """Eq. (8) without the log: distance to the k-th nearest other state."""
     distances = torch.cdist(states, reference)
     nearest = distances.topk(min(k + 1, len(reference)), dim=1, largest=False).values
-    return nearest[:, -1:].contiguous()
+    return nearest[:, -1:].contiguous()  # its statistics then sum in a fixed order
 
 
 def intrinsic_reward(batch, buffer, k):
@@ -633,7 +652,10 @@ def feedback_session(args, step, progress, size, episodes, preferences, reward_m
 
 def reset_critic(critic, critic_target, critic_optimizer):
     """PEBBLE after the first reward update: fresh critics and Adam moments."""
-    critic.load_state_dict(TwinCritic(*critic.sizes).state_dict())
+    for layer in critic.modules():  # drawn as a new TwinCritic's
+        if isinstance(layer, nn.Linear):
+            layer.reset_parameters()
+    orthogonal_init(critic)
     critic_target.load_state_dict(critic.state_dict())
     for state in critic_optimizer.state.values():  # in place: a CUDA graph holds these tensors
         for value in state.values():
@@ -732,6 +754,7 @@ def task_defaults(env_id, teacher):
 
 def parse_args():
     """tyro's command line; its defaults: the task's preset or the resumed run's configuration."""
+    # a first pass: the flags that choose the defaults
     pre = argparse.ArgumentParser(add_help=False)
     for flag in ("--env-id", "--teacher", "--resume"):
         pre.add_argument(flag, default="")
@@ -856,9 +879,21 @@ def load_checkpoint(path):
         fail(f"{path} cannot be read ({type(error).__name__}): incomplete, or not a checkpoint")
 
 
-def tensors_of(inputs):
-    """The tensors of a call's arguments: tensors and Batches."""
-    return [t for x in inputs for t in ([x] if torch.is_tensor(x) else x)]
+def flat_inputs(inputs):
+    """Batches opened."""
+    return [x for value in inputs for x in (value if isinstance(value, Batch) else [value])]
+
+
+def signature(inputs):
+    """Each tensor's shape and dtype, other arguments as they are."""
+    return [(x.shape, x.dtype) if torch.is_tensor(x) else x for x in flat_inputs(inputs)]
+
+
+def graph_input(value):
+    """The graph's copy of a tensor or Batch."""
+    if isinstance(value, Batch):
+        return Batch(*map(torch.clone, value))
+    return value.clone() if torch.is_tensor(value) else value
 
 
 class CudaGraph:
@@ -880,13 +915,18 @@ class CudaGraph:
             torch.cuda.current_stream().wait_stream(stream)
             return outputs
         if self.graph is None:
-            self.inputs = [x.clone() if torch.is_tensor(x) else Batch(*(t.clone() for t in x))
-                           for x in inputs]
+            self.inputs = [graph_input(x) for x in inputs]
+            self.signature = signature(inputs)
             self.graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self.graph):
+            # no compiling inside the capture: an error
+            with torch.compiler.set_stance("fail_on_recompile"), torch.cuda.graph(self.graph):
                 self.outputs = self.fn(*self.inputs)
-        for fixed, tensor in zip(tensors_of(self.inputs), tensors_of(inputs)):
-            fixed.copy_(tensor)
+        if signature(inputs) != self.signature:  # else copy_ would broadcast, zip truncate
+            raise ValueError(f"{self.fn.__name__}: its CUDA graph was recorded for other tensor "
+                             "shapes, dtypes or arguments than this call's")
+        for fixed, tensor in zip(flat_inputs(self.inputs), flat_inputs(inputs)):
+            if torch.is_tensor(tensor):
+                fixed.copy_(tensor)
         self.graph.replay()
         return self.outputs
 
@@ -918,17 +958,19 @@ def duration(seconds):
 class Console:
     """A start line, then progress: in place on a terminal, a line a minute in a file."""
 
-    def __init__(self, args, progress, planned, device):
+    def __init__(self, args, progress, planned, device, random_steps=0):
         self.total = args.total_timesteps
         self.planned = 0 if args.ground_truth_reward else planned
         self.metaworld = env_kind(args.env_id) == "metaworld"
         self.on_cpu = device.type == "cpu"
+        self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
+        self.random_steps = random_steps  # left out of the rate
         self.terminal = sys.stdout.isatty()
         self.clock = time.time() - progress.elapsed
         self.minute_start = time.time()
         self.minute_step = progress.global_step
         self.minutes = 0
-        self.rate = 0.0  # steps/s over the last full minute
+        self.rate = 0.0  # steps/s, the last minute of learning
         self.shown = time.time()
         name = f"the CPU (torch threads: {torch.get_num_threads()})"
         if device.type == "cuda":
@@ -942,27 +984,27 @@ class Console:
         now = time.time()
         progress.elapsed = now - self.clock
         step = progress.global_step
-        new_minute = now - self.minute_start >= 60
-        if new_minute:
+        if step <= self.random_steps:  # not yet learning
+            self.minute_start = now
+            self.minute_step = step
+        if now - self.minute_start >= 60:
             self.rate = (step - self.minute_step) / (now - self.minute_start)
             self.minute_start = now
             self.minute_step = step
             self.minutes += 1
-        if new_minute and self.minutes == 2 and self.on_cpu:
             hours = (progress.elapsed + (self.total - step) / max(self.rate, 1e-9)) / 3600
-            if hours > 12:
-                say(f"note: on this CPU the run takes about {hours:.0f} h; the README's CPU "
-                    f"scale ({CPU_SCALE}) takes under an hour; the run goes on")
-        due = now - self.shown >= 1 if self.terminal else new_minute
-        if due or step >= self.total:
-            self.shown = now
-            self.show(progress, now)
-
-    def show(self, progress, now):
-        step = progress.global_step
-        rate = self.rate or (step - self.minute_step) / max(now - self.minute_start, 1e-9)
-        left = duration((self.total - step) / rate) if rate else "-"
-        text = f"step {step}/{self.total} | {rate:.0f} steps/s | {left} left"
+            if self.minutes == 2 and self.on_cpu and hours > 12:
+                say(f"note: on this CPU the run takes about {hours:.0f} h; the CPU scale of "
+                    f"{self.cpu_scale} a run on a core of a 2-core machine; the run goes on")
+        if now - self.shown < (1 if self.terminal else 60) and step < self.total:
+            return
+        self.shown = now
+        rate = "-"
+        left = "-"
+        if self.rate:
+            rate = f"{self.rate:.1f}" if self.rate < 10 else f"{self.rate:.0f}"
+            left = duration((self.total - step) / self.rate)
+        text = f"step {step}/{self.total} | {rate} steps/s | {left} left"
         if progress.eval_rows:
             text += f" | eval return {progress.eval_rows[-1]['episode_return']:.1f}"
         if progress.eval_rows and self.metaworld:
@@ -1024,7 +1066,7 @@ if __name__ == "__main__":
     rng = np.random.default_rng(sampler_seed)
     action_rng = np.random.default_rng(action_seed)
     torch.manual_seed(args.seed)
-    torch.set_flush_denormal(True)
+    torch.set_flush_denormal(True)  # tiny floats as 0: faster on a CPU
     actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
     critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
@@ -1036,22 +1078,19 @@ if __name__ == "__main__":
     alpha_optimizer = adam([log_alpha], args.alpha_lr, graphs)
     reward_model = RewardEnsemble(obs_dim, action_dim, args.reward_ensemble_size).to(device)
     reward_optimizer = adam(reward_model.parameters(), args.reward_lr)
-    buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim).to(device)
+    buffer = ReplayBuffer(args.buffer_size or args.total_timesteps, obs_dim, action_dim, device)
     intrinsic_stats = RunningMeanStd()
-    sac_step = partial(torch.compile(sac_update) if args.compile else sac_update, actor=actor,
-                       critic=critic, critic_target=critic_target, log_alpha=log_alpha,
-                       actor_opt=actor_optimizer, critic_opt=critic_optimizer,
-                       alpha_opt=alpha_optimizer, gamma=args.gamma)
-    target_update = partial(soft_update, critic, critic_target, args.tau)
-    r_hat = torch.compile(reward_model) if args.compile else reward_model
-    act = actor.sample
+    if args.compile:  # the same names, compiled; on a GPU, CUDA graphs
+        sac_update = torch.compile(sac_update)
+        learned_reward = torch.compile(learned_reward)
     if graphs:
-        sac_step, target_update, r_hat, act = map(CudaGraph, (sac_step, target_update, r_hat, act))
+        sac_update, soft_update, learned_reward, act = map(
+            CudaGraph, (sac_update, soft_update, learned_reward, act))
     # Feedback sessions
     first_session = args.seed_steps + args.unsup_steps + 1
     steps = session_steps(first_session, args.feedback_every, args.total_timesteps)
     session_sizes = schedule_sizes(args.schedule, args.max_feedback, args.feedback_per_session,
-                                   steps - 1, args.total_timesteps)
+                                   steps - 1, args.total_timesteps)  # t: steps before step s
     planned = planned_labels(session_sizes, first_session, args.feedback_every,
                              args.total_timesteps)
     if planned < args.max_feedback and not args.ground_truth_reward:
@@ -1072,7 +1111,7 @@ if __name__ == "__main__":
             fail(f"the run in {args.output_dir!r} has already finished")
         say(f"resuming from the checkpoint at step {progress.global_step}")
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
-    console = Console(args, progress, planned, device)
+    console = Console(args, progress, planned, device, args.seed_steps)
     # The running episode again from its seed and actions
     obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
     for action in progress.running_episode[1]:
@@ -1104,25 +1143,25 @@ if __name__ == "__main__":
                 reset_critic(critic, critic_target, critic_optimizer)
                 for update in range(1, args.critic_reset_updates + 1):
                     batch = buffer.sample(args.batch_size)
-                    sac_step(batch, batch.rewards)
+                    sac_update(batch, batch.rewards, actor, critic, critic_target, log_alpha,
+                               actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
                     if update % args.target_update_every == 0:
-                        target_update()
+                        soft_update(critic, critic_target, args.tau)
 
             # Act, step, store
             if global_step <= args.seed_steps:
                 action = action_rng.uniform(-1, 1, action_dim).astype(np.float32)
             else:
                 with torch.no_grad():
-                    action = act(torch.as_tensor(obs, device=device)[None])[0]
-                action = action[0].cpu().numpy()
+                    action = act(actor, torch.as_tensor(obs, device=device)).cpu().numpy()
             next_obs, true_reward, terminated, truncated, _ = env.step(action)
             if not (math.isfinite(true_reward) and np.isfinite(next_obs).all()):
                 raise FloatingPointError("non-finite reward or observation from the environment")
             reward = float(true_reward) if args.ground_truth_reward else 0.0
             if progress.pretrained and not args.ground_truth_reward:
                 with torch.no_grad():
-                    reward = r_hat(torch.as_tensor(np.concatenate([obs, action]),
-                                                   device=device)).mean()
+                    reward = learned_reward(reward_model, torch.as_tensor(
+                        np.concatenate([obs, action]), device=device))
             buffer.add(obs, action, reward, next_obs, terminated)
             for part, value in zip(progress.running_episode, (obs, action, true_reward)):
                 part.append(np.asarray(value).tolist())
@@ -1145,9 +1184,10 @@ if __name__ == "__main__":
                     rewards = intrinsic_reward(batch, buffer, args.knn_k)
                     intrinsic_stats.update(rewards)
                     rewards = rewards / max(math.sqrt(intrinsic_stats.var), 1e-8)
-                losses = sac_step(batch, rewards)
+                losses = sac_update(batch, rewards, actor, critic, critic_target, log_alpha,
+                                    actor_optimizer, critic_optimizer, alpha_optimizer, args.gamma)
                 if (global_step - args.seed_steps) % args.target_update_every == 0:
-                    target_update()
+                    soft_update(critic, critic_target, args.tau)
                 if global_step % 100 == 0:
                     for name, value in losses.items():
                         writer.add_scalar(f"losses/{name}", value, global_step)
@@ -1158,8 +1198,8 @@ if __name__ == "__main__":
                 evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
                            eval_env, writer, device)
             console.update(progress)
-            if (args.checkpoint_every and global_step % args.checkpoint_every == 0 or stop
-                    or global_step == args.total_timesteps):
+            periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every == 0
+            if periodic or stop or global_step == args.total_timesteps:
                 check_finite(losses)
                 if global_step == args.total_timesteps:  # before the checkpoint
                     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),

@@ -101,7 +101,7 @@ def test_qpa_is_pebble_with_qpa_s_parts_only():
     main block differs only in the line that draws SAC's batch."""
     pebble, qpa = top_level("pebble.py"), top_level("qpa.py")
     changed = {name for name in pebble.keys() & qpa.keys() if pebble[name] != qpa[name]}
-    assert changed == {"Args", "PRESETS", "RANGES", "train_reward"}
+    assert changed == {"Args", "PRESETS", "RANGES", "CPU_SCALES", "train_reward"}
     assert not pebble.keys() - qpa.keys() and qpa.keys() - pebble.keys() == {"sac_batch", "crop_returns"}
     main = [text.split('if __name__ == "__main__":')[1].splitlines() for text in map(source, ("pebble.py", "qpa.py"))]
     removed = [line.strip() for line in main[0] if line not in main[1]]
