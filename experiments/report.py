@@ -1088,7 +1088,7 @@ def script_size_table() -> str:
 
     parts = ("Args, presets", "Environments", "Networks", "Algorithm", "Plumbing", "main block")
     rows = []
-    for name in ("pebble.py", "prefppo.py", "rime.py"):
+    for name in ("pebble.py", "prefppo.py", "rime.py", "qpa.py"):
         source = (ROOT / name).read_text()
         split = script_size.split(source)
         rows.append([name, f"{len(script_size.content_tokens(source)):,}", *(f"{split.get(p, 0):,}" for p in parts),
