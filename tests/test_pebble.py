@@ -708,4 +708,4 @@ def test_help_names_the_flags_whose_defaults_come_from_the_task_s_preset():
             "--teacher-gamma --max-feedback --feedback-per-session --feedback-every --hidden-dim --num-layers "
             "--batch-size --learning-rate --reward-epochs") in description
     assert "from their preset: none" in " ".join(run_script("pebble.py", "unused", "--help").stdout.split())
-    assert "where the run's files go ('': runs/<run name>) (default: '')" in description
+    assert "--output-dir STR where the run's files go (default: runs/<run name>) --checkpoint-every" in description
