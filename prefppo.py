@@ -1091,19 +1091,20 @@ if __name__ == "__main__":
             check_finite(losses)
 
             console.update(progress)
-            if global_step % args.eval_every < rollout or global_step >= args.total_timesteps:
+            last_step = global_step >= args.total_timesteps
+            if global_step % args.eval_every < rollout or last_step:
                 policy = mean_policy(actor, obs_stats, device)
                 evaluation(args, global_step, progress, policy, reward_model, eval_env, writer,
                            device)
             periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every < rollout
-            if periodic or stop or global_step >= args.total_timesteps:
-                if global_step >= args.total_timesteps:  # before the checkpoint
+            if periodic or stop or last_step:
+                if last_step:  # before the checkpoint
                     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                                    "reward_model": reward_model.state_dict(),
                                    "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
                     save_whole(f"{args.output_dir}/final_model.pt", final_model)
                 save_whole(checkpoint_path, snapshot(parts))
-            if stop and global_step < args.total_timesteps:
+            if stop and not last_step:
                 say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                     f"continue with --resume {args.output_dir}")
                 sys.exit(128 + stop[0])

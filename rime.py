@@ -946,11 +946,12 @@ class CudaGraph:
             return outputs
         if self.graph is None:
             self.inputs = [graph_input(x) for x in inputs]
+            self.signature = signature(inputs)
             self.graph = torch.cuda.CUDAGraph()
             # no compiling inside the capture: an error
             with torch.compiler.set_stance("fail_on_recompile"), torch.cuda.graph(self.graph):
                 self.outputs = self.fn(*self.inputs)
-        if signature(inputs) != signature(self.inputs):  # else copy_ would broadcast, zip truncate
+        if signature(inputs) != self.signature:  # else copy_ would broadcast, zip truncate
             raise ValueError(f"{self.fn.__name__}: its CUDA graph was recorded for other tensor "
                              "shapes, dtypes or arguments than this call's")
         for fixed, tensor in zip(flat_inputs(self.inputs), flat_inputs(inputs)):
@@ -1231,19 +1232,20 @@ if __name__ == "__main__":
                     check_finite(losses)
 
             progress.global_step = global_step
-            if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
+            last_step = global_step == args.total_timesteps
+            if global_step % args.eval_every == 0 or last_step:
                 evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
                            eval_env, writer, device)
             console.update(progress)
             periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every == 0
-            if periodic or stop or global_step == args.total_timesteps:
+            if periodic or stop or last_step:
                 check_finite(losses)
-                if global_step == args.total_timesteps:  # before the checkpoint
+                if last_step:  # before the checkpoint
                     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                                    "reward_model": reward_model.state_dict()}
                     save_whole(f"{args.output_dir}/final_model.pt", final_model)
                 save_whole(checkpoint_path, snapshot(parts))
-            if stop and global_step < args.total_timesteps:
+            if stop and not last_step:
                 say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                     f"continue with --resume {args.output_dir}")
                 sys.exit(128 + stop[0])
