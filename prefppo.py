@@ -11,7 +11,7 @@ import sys
 import time
 import warnings
 from collections import deque
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass
 from typing import Annotated, Literal
 
 import gymnasium as gym
@@ -280,7 +280,7 @@ def mlp(in_dim, out_dim, hidden_dim, num_layers, activation=nn.Tanh):
     layers = []
     for i in range(num_layers):
         layers += [nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation()]
-    return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
+    return nn.Sequential(*layers, nn.Linear(hidden_dim, out_dim))
 
 
 def orthogonal_init(module, gain):
@@ -511,9 +511,9 @@ def train_reward(reward_model, optimizer, preferences, args):
             for member, order in zip(reward_model.members, orders):
                 idx = order[start : start + args.reward_batch_size]
                 returns = torch.cat([member(inputs0[idx]).sum(1), member(inputs1[idx]).sum(1)], -1)
-                loss = loss + preference_loss(returns, y[idx], args.label_smoothing)
+                loss += preference_loss(returns, y[idx], args.label_smoothing)
                 right = (returns[:, 1] > returns[:, 0]) == (y[idx] > 0.5)
-                correct = correct + (right & (y[idx] != 0.5)).sum()
+                correct += (right & (y[idx] != 0.5)).sum()
             optimize(optimizer, loss)
             losses.append(loss.detach() / len(reward_model.members))
         strict = (y != 0.5).sum().item() * len(reward_model.members)
@@ -626,6 +626,7 @@ def step_envs(envs, kept_obs, actions, args, progress, episodes, writer, step):
     return next_obs, reached, rewards, terminated, terminated | truncated
 
 
+@torch.no_grad()
 def evaluate(policy, reward_model, env, seeds, device):
     """True return (B-Pref's metric), success, r_hat's correlation with the true reward."""
     returns = []
@@ -634,22 +635,20 @@ def evaluate(policy, reward_model, env, seeds, device):
     obs_actions = []
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
-        done = False
         returns.append(0.0)
         successes.append(False)
-        while not done:
-            with torch.no_grad():
-                action = policy(obs)
+        while True:
+            action = policy(obs)
             obs_actions.append(torch.cat([torch.as_tensor(obs, device=device), action]))
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
-            done = terminated or truncated
             returns[-1] += reward
-            successes[-1] = successes[-1] or bool(info.get("success"))
+            successes[-1] |= bool(info.get("success"))
             true_rewards.append(reward)
+            if terminated or truncated:
+                break
     correlation = math.nan
     if reward_model is not None:
-        with torch.no_grad():
-            learned = reward_model(torch.stack(obs_actions)).mean(0).flatten().cpu().numpy()
+        learned = reward_model(torch.stack(obs_actions)).mean(0).flatten().cpu().numpy()
         if min(np.std(learned), np.std(true_rewards)) > 0:
             correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
@@ -673,7 +672,7 @@ def evaluation(args, step, progress, policy, reward_model, env, writer, device):
                            lineterminator="\n")
     table.writeheader()
     table.writerows(progress.eval_rows)
-    save_file(os.path.join(args.output_dir, "eval.csv"), text.getvalue().encode())
+    save_file(f"{args.output_dir}/eval.csv", text.getvalue().encode())
     for name, value in result.items():
         writer.add_scalar(f"eval/{name}", value, step)
     writer.add_scalar("charts/SPS", step / progress.elapsed, step)
@@ -692,8 +691,8 @@ def fail(message, code=2):
     sys.exit(code)
 
 
-RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
-                     "wandb_project_name", "capture_video", "compile")
+RESUME_MAY_CHANGE = {"resume", "output_dir", "checkpoint_every", "cuda", "track",
+                     "wandb_project_name", "capture_video", "compile"}
 RANGES = [  # (flags, test, rule); the teacher checks its own
     ("seed unsup_steps checkpoint_every ent_coef vf_coef query_recent_episodes",
      lambda v: v >= 0, ">= 0"),
@@ -722,22 +721,21 @@ def parse_args():
         pre.add_argument(flag, default="")
     given = pre.parse_known_args()[0]
     default = task_defaults(given.env_id or Args.env_id, given.teacher)
-    if given.resume:
-        try:
-            with open(os.path.join(given.resume, "config.json")) as f:
-                saved = json.load(f)
-        except (OSError, ValueError) as error:
-            fail(f"--resume {given.resume!r}: its config.json cannot be read ({error})")
-        names = {f.name for f in fields(Args)}
-        may_lack = set(RESUME_MAY_CHANGE)  # older runs may lack them
-        if not set(saved) <= names or names - set(saved) - may_lack:
-            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
-        default = Args(**saved)
     marked = [f"--{k.replace('_', '-')}" for k, v in vars(default).items()
               if v != getattr(Args(), k) and k not in ("env_id", "teacher")]
     about = f"Defaults of --env-id {default.env_id} --teacher {given.teacher or default.teacher}; "
-    about += "from their preset: " + (" ".join(marked) or "none")
+    about += f"from their preset: {' '.join(marked) or 'none'}"
     if given.resume:
+        try:
+            with open(f"{given.resume}/config.json") as f:
+                saved = json.load(f)
+        except (OSError, ValueError) as error:
+            fail(f"--resume {given.resume!r}: its config.json cannot be read ({error})")
+        names = set(vars(Args()))
+        # older runs may lack RESUME_MAY_CHANGE
+        if not set(saved) <= names or names - set(saved) - RESUME_MAY_CHANGE:
+            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
+        default = Args(**saved)
         about = f"Defaults: the configuration of the run in {given.resume}"
     args = tyro.cli(Args, default=default, description=about)
     if given.resume:
@@ -748,24 +746,25 @@ def parse_args():
         args.output_dir = given.resume
     if not args.output_dir:
         run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}"
-        args.output_dir = os.path.join("runs", f"{run_name}__{int(time.time())}")
+        args.output_dir = f"runs/{run_name}__{int(time.time())}"
     return args
 
 
 def check_args(args, episode_len):
     """ValueError naming the first flag out of its range."""
     rollout = args.num_envs * args.num_steps
-    rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names.split()] + [
+    rules = RANGES + [
         ("feedback_per_session", lambda v: v <= args.max_feedback, "<= --max-feedback"),
         ("segment_len", lambda v: 1 <= v <= episode_len, f"in [1, {episode_len}] (T)"),
         ("minibatch_size", lambda v: v <= rollout, f"<= --num-envs x --num-steps ({rollout})"),
         ("total_timesteps", lambda v: v > args.unsup_steps and v >= rollout,
          f"> --unsup-steps ({args.unsup_steps}) and >= a rollout ({rollout})"),
     ]
-    for name, ok, rule in rules:
-        if not ok(getattr(args, name)):
-            flag = name.replace("_", "-")
-            raise ValueError(f"--{flag} must be {rule}, got {getattr(args, name)}")
+    for names, ok, rule in rules:
+        for name in names.split():
+            value = getattr(args, name)
+            if not ok(value):
+                raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {value}")
 
 
 def check_video(eval_env):
@@ -822,10 +821,6 @@ def check_finite(losses):
         raise FloatingPointError(f"non-finite {', '.join(bad)}")
 
 
-def save_checkpoint(path, parts):
-    save_whole(path, snapshot(parts))
-
-
 def save_whole(path, obj):
     data = io.BytesIO()
     torch.save(obj, data)
@@ -875,14 +870,15 @@ class Console:
         self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
         self.random_steps = random_steps  # left out of the rate
         self.terminal = sys.stdout.isatty()
-        self.clock = time.time() - progress.elapsed
-        self.minute_start = time.time()
+        now = time.time()
+        self.clock = now - progress.elapsed
+        self.minute_start = now
         self.minute_step = progress.global_step
         self.minutes = 0
         self.rate = 0.0  # steps/s, the last minute of learning
-        self.shown = time.time()
+        self.shown = now
         name = f"the CPU (torch threads: {torch.get_num_threads()})"
-        if device.type == "cuda":
+        if not self.on_cpu:
             name = torch.cuda.get_device_name(device)
         labels = "the true reward" if args.ground_truth_reward else f"{planned} labels planned"
         say(f"{args.exp_name} on {name}: {args.total_timesteps} steps, {labels}; "
@@ -916,12 +912,12 @@ class Console:
         text = f"step {step}/{self.total} | {rate} steps/s | {left} left"
         if progress.eval_rows:
             text += f" | eval return {progress.eval_rows[-1]['episode_return']:.1f}"
-        if progress.eval_rows and self.metaworld:
-            text += f", success {progress.eval_rows[-1]['success_rate']:.0%}"
+            if self.metaworld:
+                text += f", success {progress.eval_rows[-1]['success_rate']:.0%}"
         if self.planned:
             text += f" | labels {progress.feedback_used}/{self.planned}"
         if self.terminal:
-            print("\r" + text + "\033[K", end="", flush=True)
+            print(f"\r{text}\033[K", end="", flush=True)
         else:
             print(text, flush=True)
 
@@ -947,18 +943,18 @@ if __name__ == "__main__":
         preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device)}
         if args.labels_from and not args.resume:
             add_labels(preferences, *load_pairs(args.labels_from, empty.shape[1:]))
-        checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
+        checkpoint_path = f"{args.output_dir}/checkpoint.pt"
         if args.resume and not os.path.isfile(checkpoint_path):
             raise ValueError(f"--resume {args.output_dir!r}: no checkpoint.pt there")
         if not args.resume and os.path.isdir(args.output_dir) and os.listdir(args.output_dir):
             raise ValueError(f"--output-dir {args.output_dir!r} already holds a run")
-        os.makedirs(os.path.join(args.output_dir, "labels"), exist_ok=True)
+        os.makedirs(f"{args.output_dir}/labels", exist_ok=True)
         if not args.resume:
-            save_file(os.path.join(args.output_dir, "config.json"), json.dumps(vars(args)).encode())
+            save_file(f"{args.output_dir}/config.json", json.dumps(vars(args)).encode())
     except (ValueError, OSError) as error:
         fail(str(error))
     if args.capture_video:
-        eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(args.output_dir, "videos"),
+        eval_env = gym.wrappers.RecordVideo(eval_env, f"{args.output_dir}/videos",
                                             episode_trigger=lambda e: e % args.eval_episodes == 0)
     if args.track:
         import wandb
@@ -1028,7 +1024,7 @@ if __name__ == "__main__":
             first_learned_reward = False
             if session_due(args, global_step, progress, session_sizes, episodes):
                 if args.teacher == "human":  # --resume asks this session again
-                    save_checkpoint(checkpoint_path, parts)
+                    save_whole(checkpoint_path, snapshot(parts))
                 size = int(session_sizes[progress.sessions_done])
                 n_labels = feedback_session(args, global_step, progress, size, episodes,
                                             preferences, reward_model, reward_optimizer, teacher,
@@ -1095,19 +1091,20 @@ if __name__ == "__main__":
             check_finite(losses)
 
             console.update(progress)
-            if global_step % args.eval_every < rollout or global_step >= args.total_timesteps:
+            last_step = global_step >= args.total_timesteps
+            if global_step % args.eval_every < rollout or last_step:
                 policy = mean_policy(actor, obs_stats, device)
                 evaluation(args, global_step, progress, policy, reward_model, eval_env, writer,
                            device)
             periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every < rollout
-            if periodic or stop or global_step >= args.total_timesteps:
-                if global_step >= args.total_timesteps:  # before the checkpoint
+            if periodic or stop or last_step:
+                if last_step:  # before the checkpoint
                     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                                    "reward_model": reward_model.state_dict(),
                                    "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
-                    save_whole(os.path.join(args.output_dir, "final_model.pt"), final_model)
-                save_checkpoint(checkpoint_path, parts)
-            if stop and global_step < args.total_timesteps:
+                    save_whole(f"{args.output_dir}/final_model.pt", final_model)
+                save_whole(checkpoint_path, snapshot(parts))
+            if stop and not last_step:
                 say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                     f"continue with --resume {args.output_dir}")
                 sys.exit(128 + stop[0])

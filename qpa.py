@@ -10,7 +10,7 @@ import sys
 import time
 import warnings
 from collections import deque, namedtuple
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass
 from typing import Annotated, Literal
 
 import gymnasium as gym
@@ -272,7 +272,7 @@ def mlp(in_dim, out_dim, hidden_dim, num_layers, activation=nn.ReLU):
     layers = []
     for i in range(num_layers):
         layers += [nn.Linear(hidden_dim if i else in_dim, hidden_dim), activation()]
-    return nn.Sequential(*layers, nn.Linear(hidden_dim if num_layers else in_dim, out_dim))
+    return nn.Sequential(*layers, nn.Linear(hidden_dim, out_dim))
 
 
 def orthogonal_init(module):
@@ -394,24 +394,23 @@ def sac_update(batch, rewards, actor, critic, critic_target, log_alpha, actor_op
     with torch.no_grad():
         next_actions, next_log_prob = actor.sample(batch.next_obs)
         next_q = torch.min(*critic_target(batch.next_obs, next_actions))
-    q1, q2 = critic(batch.obs, batch.actions)
-    critic_loss = sac_critic_loss(q1, q2, rewards, batch.terminated, next_q, next_log_prob, alpha,
-                                  gamma)
+    critic_loss = sac_critic_loss(*critic(batch.obs, batch.actions), rewards, batch.terminated,
+                                  next_q, next_log_prob, alpha, gamma)
     optimize(critic_opt, critic_loss)
     actions, log_prob = actor.sample(batch.obs)
     actor_loss = sac_actor_loss(log_prob, *critic(batch.obs, actions), alpha)
     optimize(actor_opt, actor_loss)
     alpha_loss = temperature_loss(log_alpha, log_prob, -batch.actions.shape[-1])
     optimize(alpha_opt, alpha_loss)
-    losses = {"critic_loss": critic_loss, "actor_loss": actor_loss, "alpha_loss": alpha_loss,
-              "entropy": -log_prob.mean(), "alpha": alpha, "batch_reward": rewards.mean()}
-    return {name: value.detach() for name, value in losses.items()}
+    return {"critic_loss": critic_loss.detach(), "actor_loss": actor_loss.detach(),
+            "alpha_loss": alpha_loss.detach(), "entropy": -log_prob.detach().mean(), "alpha": alpha,
+            "batch_reward": rewards.mean()}  # the others carry no gradient
 
 
+@torch.no_grad()
 def soft_update(critic, critic_target, tau):
-    with torch.no_grad():
-        for param, target_param in zip(critic.parameters(), critic_target.parameters()):
-            target_param.lerp_(param, tau)
+    for param, target_param in zip(critic.parameters(), critic_target.parameters()):
+        target_param.lerp_(param, tau)
 
 
 def act(actor, obs):
@@ -487,12 +486,13 @@ class RunningMeanStd:
         self.count = total
 
 
+@torch.no_grad()
 def relabel(buffer, reward_model, chunk=16384):
     """PEBBLE's relabelling of every stored transition with r_hat."""
-    with torch.no_grad():
-        for i in range(0, buffer.size, chunk):
-            obs_action = torch.cat([buffer.obs[i : i + chunk], buffer.actions[i : i + chunk]], -1)
-            buffer.rewards[i : i + chunk] = reward_model(obs_action).mean(0)
+    for start in range(0, buffer.size, chunk):
+        rows = slice(start, start + chunk)
+        obs_action = torch.cat([buffer.obs[rows], buffer.actions[rows]], -1)
+        buffer.rewards[rows] = reward_model(obs_action).mean(0)
 
 
 def sac_batch(buffer, args, progress, episodes):
@@ -662,6 +662,7 @@ def reset_critic(critic, critic_target, critic_optimizer):
             value.zero_()
 
 
+@torch.no_grad()
 def evaluate(policy, reward_model, env, seeds, device):
     """True return (B-Pref's metric), success, r_hat's correlation with the true reward."""
     returns = []
@@ -670,22 +671,20 @@ def evaluate(policy, reward_model, env, seeds, device):
     obs_actions = []
     for seed in seeds:
         obs, _ = env.reset(seed=seed)
-        done = False
         returns.append(0.0)
         successes.append(False)
-        while not done:
-            with torch.no_grad():
-                action = policy(obs)
+        while True:
+            action = policy(obs)
             obs_actions.append(torch.cat([torch.as_tensor(obs, device=device), action]))
             obs, reward, terminated, truncated, info = env.step(action.cpu().numpy())
-            done = terminated or truncated
             returns[-1] += reward
-            successes[-1] = successes[-1] or bool(info.get("success"))
+            successes[-1] |= bool(info.get("success"))
             true_rewards.append(reward)
+            if terminated or truncated:
+                break
     correlation = math.nan
     if reward_model is not None:
-        with torch.no_grad():
-            learned = reward_model(torch.stack(obs_actions)).mean(0).flatten().cpu().numpy()
+        learned = reward_model(torch.stack(obs_actions)).mean(0).flatten().cpu().numpy()
         if min(np.std(learned), np.std(true_rewards)) > 0:
             correlation = float(np.corrcoef(learned, true_rewards)[0, 1])
     return {"episode_return": float(np.mean(returns)), "episode_return_std": float(np.std(returns)),
@@ -709,7 +708,7 @@ def evaluation(args, step, progress, policy, reward_model, env, writer, device):
                            lineterminator="\n")
     table.writeheader()
     table.writerows(progress.eval_rows)
-    save_file(os.path.join(args.output_dir, "eval.csv"), text.getvalue().encode())
+    save_file(f"{args.output_dir}/eval.csv", text.getvalue().encode())
     for name, value in result.items():
         writer.add_scalar(f"eval/{name}", value, step)
     writer.add_scalar("charts/SPS", step / progress.elapsed, step)
@@ -728,8 +727,8 @@ def fail(message, code=2):
     sys.exit(code)
 
 
-RESUME_MAY_CHANGE = ("resume", "output_dir", "checkpoint_every", "cuda", "track",
-                     "wandb_project_name", "capture_video", "compile")
+RESUME_MAY_CHANGE = {"resume", "output_dir", "checkpoint_every", "cuda", "track",
+                     "wandb_project_name", "capture_video", "compile"}
 RANGES = [  # (flags, test, rule); the teacher checks its own
     ("seed seed_steps unsup_steps checkpoint_every buffer_size query_recent_episodes "
      "critic_reset_updates", lambda v: v >= 0, ">= 0"),
@@ -760,22 +759,21 @@ def parse_args():
         pre.add_argument(flag, default="")
     given = pre.parse_known_args()[0]
     default = task_defaults(given.env_id or Args.env_id, given.teacher)
-    if given.resume:
-        try:
-            with open(os.path.join(given.resume, "config.json")) as f:
-                saved = json.load(f)
-        except (OSError, ValueError) as error:
-            fail(f"--resume {given.resume!r}: its config.json cannot be read ({error})")
-        names = {f.name for f in fields(Args)}
-        may_lack = set(RESUME_MAY_CHANGE)  # older runs may lack them
-        if not set(saved) <= names or names - set(saved) - may_lack:
-            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
-        default = Args(**saved)
     marked = [f"--{k.replace('_', '-')}" for k, v in vars(default).items()
               if v != getattr(Args(), k) and k not in ("env_id", "teacher")]
     about = f"Defaults of --env-id {default.env_id} --teacher {given.teacher or default.teacher}; "
-    about += "from their preset: " + (" ".join(marked) or "none")
+    about += f"from their preset: {' '.join(marked) or 'none'}"
     if given.resume:
+        try:
+            with open(f"{given.resume}/config.json") as f:
+                saved = json.load(f)
+        except (OSError, ValueError) as error:
+            fail(f"--resume {given.resume!r}: its config.json cannot be read ({error})")
+        names = set(vars(Args()))
+        # older runs may lack RESUME_MAY_CHANGE
+        if not set(saved) <= names or names - set(saved) - RESUME_MAY_CHANGE:
+            fail(f"--resume {given.resume!r}: its config.json is of another version of this script")
+        default = Args(**saved)
         about = f"Defaults: the configuration of the run in {given.resume}"
     args = tyro.cli(Args, default=default, description=about)
     if given.resume:
@@ -786,24 +784,25 @@ def parse_args():
         args.output_dir = given.resume
     if not args.output_dir:
         run_name = f"{args.env_id}__{args.exp_name}__{args.teacher}__{args.seed}"
-        args.output_dir = os.path.join("runs", f"{run_name}__{int(time.time())}")
+        args.output_dir = f"runs/{run_name}__{int(time.time())}"
     return args
 
 
 def check_args(args, episode_len):
     """ValueError naming the first flag out of its range."""
     pretrain = args.seed_steps + args.unsup_steps
-    rules = [(name, ok, rule) for names, ok, rule in RANGES for name in names.split()] + [
+    rules = RANGES + [
         ("feedback_per_session", lambda v: v <= args.max_feedback, "<= --max-feedback"),
         ("segment_len", lambda v: 1 <= v <= episode_len, f"in [1, {episode_len}] (T)"),
         ("total_timesteps", lambda v: v > pretrain, f"> --seed-steps + --unsup-steps ({pretrain})"),
         ("buffer_size", lambda v: v == 0 or v >= max(args.batch_size, episode_len),
          "0 or >= the batch size and T"),
     ]
-    for name, ok, rule in rules:
-        if not ok(getattr(args, name)):
-            flag = name.replace("_", "-")
-            raise ValueError(f"--{flag} must be {rule}, got {getattr(args, name)}")
+    for names, ok, rule in rules:
+        for name in names.split():
+            value = getattr(args, name)
+            if not ok(value):
+                raise ValueError(f"--{name.replace('_', '-')} must be {rule}, got {value}")
 
 
 def check_video(eval_env):
@@ -848,7 +847,7 @@ def restore(parts, state, device):
             part.bit_generator.state = state[name]
         elif is_dataclass(part):
             vars(part).update(state[name])
-        elif isinstance(part, torch.Tensor):
+        elif torch.is_tensor(part):
             part.data.copy_(state[name])
         elif isinstance(part, dict):
             part.update({key: value.to(device) for key, value in state[name].items()})
@@ -860,10 +859,6 @@ def check_finite(losses):
     """A NaN or infinity stops the run before a checkpoint could hold it."""
     if bad := [name for name, value in losses.items() if not math.isfinite(value)]:
         raise FloatingPointError(f"non-finite {', '.join(bad)}")
-
-
-def save_checkpoint(path, parts):
-    save_whole(path, snapshot(parts))
 
 
 def save_whole(path, obj):
@@ -900,9 +895,9 @@ class CudaGraph:
     """--compile on a GPU (LeanRL's recipe): all of fn's kernels (backward and Adam's step too)
     recorded once, then replayed; a call copies its tensors into the graph's inputs."""
 
-    def __init__(self, fn, eager_calls=3):
+    def __init__(self, fn):
         self.fn = fn
-        self.eager_calls = eager_calls  # first: Adam's moments and cuBLAS's workspace are made
+        self.eager_calls = 3  # first: Adam's moments and cuBLAS's workspace are made
         self.graph = None
 
     def __call__(self, *inputs):
@@ -966,14 +961,15 @@ class Console:
         self.cpu_scale = CPU_SCALES.get(args.env_id.removesuffix("-v3"), CPU_SCALES["walker-walk"])
         self.random_steps = random_steps  # left out of the rate
         self.terminal = sys.stdout.isatty()
-        self.clock = time.time() - progress.elapsed
-        self.minute_start = time.time()
+        now = time.time()
+        self.clock = now - progress.elapsed
+        self.minute_start = now
         self.minute_step = progress.global_step
         self.minutes = 0
         self.rate = 0.0  # steps/s, the last minute of learning
-        self.shown = time.time()
+        self.shown = now
         name = f"the CPU (torch threads: {torch.get_num_threads()})"
-        if device.type == "cuda":
+        if not self.on_cpu:
             name = torch.cuda.get_device_name(device)
         labels = "the true reward" if args.ground_truth_reward else f"{planned} labels planned"
         say(f"{args.exp_name} on {name}: {args.total_timesteps} steps, {labels}; "
@@ -1007,12 +1003,12 @@ class Console:
         text = f"step {step}/{self.total} | {rate} steps/s | {left} left"
         if progress.eval_rows:
             text += f" | eval return {progress.eval_rows[-1]['episode_return']:.1f}"
-        if progress.eval_rows and self.metaworld:
-            text += f", success {progress.eval_rows[-1]['success_rate']:.0%}"
+            if self.metaworld:
+                text += f", success {progress.eval_rows[-1]['success_rate']:.0%}"
         if self.planned:
             text += f" | labels {progress.feedback_used}/{self.planned}"
         if self.terminal:
-            print("\r" + text + "\033[K", end="", flush=True)
+            print(f"\r{text}\033[K", end="", flush=True)
         else:
             print(text, flush=True)
 
@@ -1038,18 +1034,18 @@ if __name__ == "__main__":
         preferences = {"inputs0": empty, "inputs1": empty, "y": torch.zeros(0, device=device)}
         if args.labels_from and not args.resume:
             add_labels(preferences, *load_pairs(args.labels_from, empty.shape[1:]))
-        checkpoint_path = os.path.join(args.output_dir, "checkpoint.pt")
+        checkpoint_path = f"{args.output_dir}/checkpoint.pt"
         if args.resume and not os.path.isfile(checkpoint_path):
             raise ValueError(f"--resume {args.output_dir!r}: no checkpoint.pt there")
         if not args.resume and os.path.isdir(args.output_dir) and os.listdir(args.output_dir):
             raise ValueError(f"--output-dir {args.output_dir!r} already holds a run")
-        os.makedirs(os.path.join(args.output_dir, "labels"), exist_ok=True)
+        os.makedirs(f"{args.output_dir}/labels", exist_ok=True)
         if not args.resume:
-            save_file(os.path.join(args.output_dir, "config.json"), json.dumps(vars(args)).encode())
+            save_file(f"{args.output_dir}/config.json", json.dumps(vars(args)).encode())
     except (ValueError, OSError) as error:
         fail(str(error))
     if args.capture_video:
-        eval_env = gym.wrappers.RecordVideo(eval_env, os.path.join(args.output_dir, "videos"),
+        eval_env = gym.wrappers.RecordVideo(eval_env, f"{args.output_dir}/videos",
                                             episode_trigger=lambda e: e % args.eval_episodes == 0)
     if args.track:
         import wandb
@@ -1067,9 +1063,10 @@ if __name__ == "__main__":
     action_rng = np.random.default_rng(action_seed)
     torch.manual_seed(args.seed)
     torch.set_flush_denormal(True)  # tiny floats as 0: faster on a CPU
-    actor = Actor(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
-    critic = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
-    critic_target = TwinCritic(obs_dim, action_dim, args.hidden_dim, args.num_layers).to(device)
+    sizes = (obs_dim, action_dim, args.hidden_dim, args.num_layers)
+    actor = Actor(*sizes).to(device)
+    critic = TwinCritic(*sizes).to(device)
+    critic_target = TwinCritic(*sizes).to(device)
     critic_target.load_state_dict(critic.state_dict())
     graphs = args.compile and device.type == "cuda"
     actor_optimizer = adam(actor.parameters(), args.learning_rate, graphs)
@@ -1113,7 +1110,8 @@ if __name__ == "__main__":
         set_labels_aside(args.output_dir, progress.sessions_done, progress.global_step)
     console = Console(args, progress, planned, device, args.seed_steps)
     # The running episode again from its seed and actions
-    obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
+    seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes)
+    obs, _ = env.reset(seed=seed)
     for action in progress.running_episode[1]:
         obs = env.step(np.array(action, np.float32))[0]
     stop = []  # SIGTERM or SIGINT: checkpoint, exit
@@ -1128,7 +1126,7 @@ if __name__ == "__main__":
             first_learned_reward = False
             if session_due(args, global_step, progress, session_sizes, episodes):
                 if args.teacher == "human":  # --resume asks it again
-                    save_checkpoint(checkpoint_path, parts)
+                    save_whole(checkpoint_path, snapshot(parts))
                 size = int(session_sizes[progress.sessions_done])
                 n_labels = feedback_session(args, global_step, progress, size, episodes,
                                             preferences, reward_model, reward_optimizer, teacher,
@@ -1167,14 +1165,14 @@ if __name__ == "__main__":
                 part.append(np.asarray(value).tolist())
             obs = next_obs
             if terminated or truncated:  # to the query pool
-                seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes)
                 episodes.append((*map(torch.tensor, progress.running_episode), seed))
                 episode_return = sum(progress.running_episode[2])
                 progress.recent_returns = (progress.recent_returns + [episode_return])[-10:]
                 writer.add_scalar("charts/episodic_return", episode_return, global_step)
                 progress.running_episode = ([], [], [])
                 progress.episodes += 1
-                obs, _ = env.reset(seed=episode_seed(args.seed, TRAIN_STREAM, progress.episodes))
+                seed = episode_seed(args.seed, TRAIN_STREAM, progress.episodes)
+                obs, _ = env.reset(seed=seed)
 
             # SAC update
             if global_step > args.seed_steps:
@@ -1194,19 +1192,20 @@ if __name__ == "__main__":
                     check_finite(losses)
 
             progress.global_step = global_step
-            if global_step % args.eval_every == 0 or global_step == args.total_timesteps:
+            last_step = global_step == args.total_timesteps
+            if global_step % args.eval_every == 0 or last_step:
                 evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
                            eval_env, writer, device)
             console.update(progress)
             periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every == 0
-            if periodic or stop or global_step == args.total_timesteps:
+            if periodic or stop or last_step:
                 check_finite(losses)
-                if global_step == args.total_timesteps:  # before the checkpoint
+                if last_step:  # before the checkpoint
                     final_model = {"actor": actor.state_dict(), "critic": critic.state_dict(),
                                    "reward_model": reward_model.state_dict()}
-                    save_whole(os.path.join(args.output_dir, "final_model.pt"), final_model)
-                save_checkpoint(checkpoint_path, parts)
-            if stop and global_step < args.total_timesteps:
+                    save_whole(f"{args.output_dir}/final_model.pt", final_model)
+                save_whole(checkpoint_path, snapshot(parts))
+            if stop and not last_step:
                 say(f"{signal.Signals(stop[0]).name}: checkpoint saved at step {global_step}; "
                     f"continue with --resume {args.output_dir}")
                 sys.exit(128 + stop[0])

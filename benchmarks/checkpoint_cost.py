@@ -55,7 +55,7 @@ if __name__ == "__main__":
             writes, reads = [], []
             for _ in range(args.repeats):
                 start = time.perf_counter()
-                pebble.save_checkpoint(path, parts)
+                pebble.save_whole(path, pebble.snapshot(parts))
                 writes.append(time.perf_counter() - start)
                 start = time.perf_counter()
                 state = torch.load(path, weights_only=True)
