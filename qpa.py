@@ -840,19 +840,23 @@ def restore(parts, state, device):
     torch.set_rng_state(state["torch_rng"])
     if "cuda_rng" in state and device.type == "cuda":
         torch.cuda.set_rng_state_all(state["cuda_rng"])
-    for name, part in parts.items():
-        if hasattr(part, "load_state_dict"):
-            part.load_state_dict(state[name])
-        elif isinstance(part, np.random.Generator):
-            part.bit_generator.state = state[name]
-        elif is_dataclass(part):
-            vars(part).update(state[name])
-        elif torch.is_tensor(part):
-            part.data.copy_(state[name])
-        elif isinstance(part, dict):
-            part.update({key: value.to(device) for key, value in state[name].items()})
-        else:
-            part.extend(state[name])
+    try:
+        for name, part in parts.items():
+            if hasattr(part, "load_state_dict"):
+                part.load_state_dict(state[name])
+            elif isinstance(part, np.random.Generator):
+                part.bit_generator.state = state[name]
+            elif is_dataclass(part):
+                vars(part).update(state[name])
+            elif torch.is_tensor(part):
+                part.data.copy_(state[name])
+            elif isinstance(part, dict):
+                part.update({key: value.to(device) for key, value in state[name].items()})
+            else:
+                part.extend(state[name])
+    except KeyError as error:  # a checkpoint of another version
+        fail(f"the checkpoint does not fit this script ({type(error).__name__}: {error}); "
+             "resume it with the version that wrote it, or start afresh")
 
 
 def check_finite(losses):

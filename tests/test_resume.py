@@ -18,7 +18,7 @@ import torch
 
 import pebble
 import sim_teacher
-from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_in_one_interpreter, run_script, saved_labels, start_script, wait_for
+from tests.helpers import ROOT, ENV, eval_curve, eval_rows, run_cli, run_in_one_interpreter, run_script, saved_labels, start_script, wait_for
 
 # Tiny walker-walk runs. pebble: random steps to 700 (500 fewer SAC updates than from 200: the suite's time), then
 # pre-training to 1000; sessions at 1001 (after the first episode: segments come from complete ones), 1101 and 1201, a
@@ -117,6 +117,23 @@ def test_a_kill_while_writing_a_checkpoint_leaves_the_previous_one_loadable(tmp_
     killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True)
     assert killed.returncode == -signal.SIGKILL
     assert torch.load(path, weights_only=True)["step"] == 1
+
+
+@pytest.mark.parametrize("script", WITH_RIME)
+def test_a_checkpoint_of_another_version_is_refused_in_one_line(script, tmp_path, uninterrupted):
+    """A checkpoint whose parts this script's version does not read (here the replay buffer's as the scripts wrote it
+    before they kept its filled part only; PrefPPO: a renamed part) ends the resume with one line, exit code 2."""
+    run = tmp_path / "run"
+    shutil.copytree(uninterrupted[script], run)
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    if script == "prefppo.py":
+        state["old_name"] = state.pop("optimizer")
+    else:
+        state["buffer"].pop("size")
+    torch.save(state, run / "checkpoint.pt")
+    result = run_cli(script, "--resume", str(run))
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr[-2000:]
+    assert result.stderr.startswith("error: the checkpoint does not fit this script (KeyError: ")
 
 
 @pytest.mark.parametrize("env_id", ["walker-walk", "button-press", "tests.toy_envs:ConstantPenalty-v0"])
