@@ -315,7 +315,7 @@ class TwinCritic(nn.Module):
         orthogonal_init(self)
 
     def forward(self, obs, action):
-        x = torch.cat([obs, action], dim=-1)
+        x = torch.cat([obs, action], -1)
         return self.q1(x), self.q2(x)
 
 
@@ -546,15 +546,14 @@ def sample_queries(sampler, size, episodes, reward_model, preferences, args, rng
     if sampler != "uniform":
         obs_dim = candidates["obs0"].shape[-1]
         with torch.no_grad():
-            probs = torch.sigmoid(reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2))
+            margins = reward_model(inputs1).sum(2) - reward_model(inputs0).sum(2)
         labelled = None
         features = None
         if sampler.endswith("coverage"):
             labelled = coverage_features(preferences["inputs0"], preferences["inputs1"], obs_dim)
             features = coverage_features(inputs0, inputs1, obs_dim)
-        probs = probs[..., 0].cpu().numpy()
-        chosen = select(sampler, size, probs=probs, rng=rng, labeled_features=labelled,
-                        features=features)
+        chosen = select(sampler, size, probs=torch.sigmoid(margins)[..., 0].cpu().numpy(),
+                        rng=rng, labeled_features=labelled, features=features)  # Eq. (2)
     segments = {key: value[chosen] for key, value in candidates.items()}
     return segments, inputs0[chosen], inputs1[chosen]
 
@@ -713,8 +712,8 @@ def parse_args():
     default = task_defaults(given.env_id or Args.env_id, given.teacher)
     marked = [f"--{k.replace('_', '-')}" for k, v in vars(default).items()
               if v != getattr(Args(), k) and k not in ("env_id", "teacher")]
-    about = f"Defaults of --env-id {default.env_id} --teacher {given.teacher or default.teacher}; "
-    about += f"from their preset: {' '.join(marked) or 'none'}"
+    about = (f"Defaults of --env-id {default.env_id} --teacher {given.teacher or default.teacher}; "
+             f"from their preset: {' '.join(marked) or 'none'}")
     if given.resume:
         try:
             with open(f"{given.resume}/config.json") as f:
@@ -806,9 +805,9 @@ def restore(parts, state, device):
                 part.update({key: value.to(device) for key, value in state[name].items()})
             else:
                 part.extend(state[name])
-    except KeyError as error:  # a checkpoint of another version
-        fail(f"the checkpoint does not fit this script ({type(error).__name__}: {error}); "
-             "resume it with the version that wrote it, or start afresh")
+    except KeyError:  # another version's checkpoint
+        fail("the checkpoint does not fit this script (written by another version?); resume it "
+             "with the version that wrote it, or start afresh")
 
 
 def check_finite(losses):
@@ -1153,7 +1152,7 @@ if __name__ == "__main__":
                 evaluation(args, global_step, progress, mean_policy(actor, device), reward_model,
                            eval_env, writer, device)
             console.update(progress)
-            periodic = args.checkpoint_every > 0 and global_step % args.checkpoint_every == 0
+            periodic = args.checkpoint_every and global_step % args.checkpoint_every == 0
             if periodic or stop or last_step:
                 check_finite(losses)
                 if last_step:  # before the checkpoint

@@ -12,7 +12,7 @@ import pytest
 from benchmarks.script_size import ROOT, content_tokens, main_loop_lines, prose_characters
 
 SCRIPTS = ("pebble.py", "prefppo.py", "rime.py", "qpa.py")
-SIZE_LIMIT = {"pebble.py": 8960, "prefppo.py": 8850, "rime.py": 10030, "qpa.py": 9460}  # tokens today, rounded up: a regression guard
+SIZE_LIMIT = {"pebble.py": 8950, "prefppo.py": 8850, "rime.py": 10020, "qpa.py": 9450}  # tokens today, rounded up: a regression guard
 # Plumbing that is the same code in both scripts (CleanRL's way: each script stands alone)
 # and reward learning, which is the same algorithm in both; restore differs by SAC's temperature tensor
 SHARED = ("DMCEnv", "MetaWorldSeeding", "env_kind", "make_env", "numpy_seeds", "episode_seed", "knn_distance",
