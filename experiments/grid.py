@@ -479,7 +479,7 @@ COST_SETTINGS = (("env_id", "--env-id"), ("total_timesteps", "--total-timesteps"
                  ("ground_truth_reward", "--ground-truth-reward"))
 
 
-def kept_runs(docs: Path) -> list[tuple[str, dict, float]]:
+def kept_wall_times(docs: Path) -> list[tuple[str, dict, float]]:
     """(algorithm with the implementation's prefix, config, final wall time in seconds) of every run kept below
     docs that reached its last step."""
     kept = []
@@ -519,7 +519,9 @@ def type_of(text: str):
 def dry_run_cost(todo: list[tuple[Run, bool]], root: Path, cpus_per_run: int, docs: Path) -> list[str]:
     """Lines that say what the runs to do will cost in core-hours, from the wall times of alike runs kept under
     docs (a resumed run only its steps left)."""
-    kept, hours, unknown = kept_runs(docs), 0.0, []
+    kept = kept_wall_times(docs)
+    hours = 0.0
+    unknown = []
     for run, resume in todo:
         alike = minutes_alike(run, kept)
         if alike is None:
@@ -527,7 +529,8 @@ def dry_run_cost(todo: list[tuple[Run, bool]], root: Path, cpus_per_run: int, do
             continue
         left = 1.0
         if resume:
-            rows, config = read_eval(root / run.name), json.loads((root / run.name / "config.json").read_text())
+            rows = read_eval(root / run.name)
+            config = json.loads((root / run.name / "config.json").read_text())
             left = 1 - (rows[-1]["step"] if rows else 0) / config["total_timesteps"]
         hours += alike[0] * left * cpus_per_run / 60
     lines = [f"# about {hours:.1f} core-hours for {len(todo) - len(unknown)} runs, from the median wall time of the "
