@@ -147,9 +147,11 @@ class Finding:
 
 
 def f1_pebble_above_prefppo(pool) -> Finding:
-    lines, calls = [], {}
+    lines = []
+    calls = {}
     for task, runs in pool.items():
-        pebble, prefppo = normalised(arm(runs, "pebble", "oracle")), normalised(arm(runs, "prefppo", "oracle"))
+        pebble = normalised(arm(runs, "pebble", "oracle"))
+        prefppo = normalised(arm(runs, "prefppo", "oracle"))
         result = compare(pebble, prefppo)
         if result is None:
             lines.append(f"{task}: {pending('bpref-walker-prefppo') if task == 'walker-walk' else 'too few runs'}")
@@ -178,7 +180,8 @@ def f1_pebble_above_prefppo(pool) -> Finding:
 def f2_equal_and_skip_above_oracle(pool) -> Finding:
     runs = pool["quadruped-walk"]
     oracle = normalised(arm(runs, "pebble", "oracle"))
-    lines, calls = [], []
+    lines = []
+    calls = []
     for teacher in ("equal", "skip"):
         result = compare(normalised(arm(runs, "pebble", teacher)), oracle)
         if result is None:
@@ -200,7 +203,8 @@ def f2_equal_and_skip_above_oracle(pool) -> Finding:
 
 
 def f3_mistake_and_stoc_hurt_most(pool) -> Finding:
-    lines, outcomes = [], []
+    lines = []
+    outcomes = []
     for task, runs in pool.items():
         for algorithm in ("pebble", "prefppo"):
             means = {t: normalised(arm(runs, algorithm, t)) for t in report.TEACHERS}
@@ -238,7 +242,8 @@ def f3_mistake_and_stoc_hurt_most(pool) -> Finding:
 def f4_uncertainty_samplers(pool, speed: dict[str, float]) -> Finding:
     runs = pool["walker-walk"]
     uniform = normalised(arm(runs, "pebble", "oracle", sampler="uniform"))
-    lines, calls = [], {}
+    lines = []
+    calls = {}
     for sampler in ("disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"):
         result = compare(normalised(arm(runs, "pebble", "oracle", sampler=sampler)), uniform)
         if result is None:
@@ -280,12 +285,14 @@ def equal_share(run: report.Run) -> float | None:
 
 def f4a_equal_answers(pool) -> Finding:
     runs = pool["walker-walk"]
-    shares, returns = {}, {}
+    shares = {}
+    returns = {}
     for sampler in ("uniform", "disagreement", "entropy", "coverage", "disagreement-coverage", "entropy-coverage"):
         group = arm(runs, "pebble", "equal", sampler=sampler)
         shares[sampler] = np.array([s for s in map(equal_share, group) if s is not None])
         returns[sampler] = normalised(group)
-    lines, calls = [], {}
+    lines = []
+    calls = {}
     for sampler in shares:
         if len(shares[sampler]) < 2:
             lines.append(f"{sampler}: {pending('bpref-walker-samplers-equal')}")
@@ -293,7 +300,8 @@ def f4a_equal_answers(pool) -> Finding:
         lines.append(f"{sampler}: equal answers {shares[sampler].mean():.1%}, normalised return "
                      f"{mean_text(returns[sampler])}")
     for sampler in ("disagreement", "entropy"):
-        share, learned = compare(shares[sampler], shares["uniform"]), compare(returns[sampler], returns["uniform"])
+        share = compare(shares[sampler], shares["uniform"])
+        learned = compare(returns[sampler], returns["uniform"])
         if share and learned:
             calls[sampler] = (share.call, learned.call)
             lines.append(f"{sampler} - uniform: equal share {share.text()}; return {learned.text()}")
@@ -314,7 +322,8 @@ def f4a_equal_answers(pool) -> Finding:
 def f5_schedules(pool) -> Finding:
     runs = pool["walker-walk"]
     uniform = normalised(arm(runs, "pebble", "oracle"))
-    lines, calls = [], []
+    lines = []
+    calls = []
     for schedule in ("increase", "decay"):
         result = compare(normalised(arm(runs, "pebble", "oracle", schedule=schedule)), uniform)
         if result is None:
@@ -334,7 +343,8 @@ def f5_schedules(pool) -> Finding:
 
 
 def f6_alignment(pool) -> Finding:
-    lines, lows = [], {}
+    lines = []
+    lows = {}
     for task, runs in pool.items():
         r = np.array([run.rows[-1]["reward_correlation"] for run in arm(runs, "pebble", "oracle")])
         r = r[np.isfinite(r)]
@@ -364,7 +374,8 @@ def f7_label_smoothing(pool) -> Finding:
     mistake = normalised(arm(runs, "pebble", "mistake"))
     result = compare(normalised(arm(runs, "pebble", SMOOTHED)), mistake)
     if result is None:
-        lines, verdict = [pending("bpref-walker-smoothing")], "pending"
+        lines = [pending("bpref-walker-smoothing")]
+        verdict = "pending"
     else:
         lines = [f"smoothing {mean_text(result.new)}, without {mean_text(mistake)}: smoothing - without "
                  f"{result.text()}"]
