@@ -99,3 +99,54 @@ def test_an_undecided_gap_says_how_many_seeds_would_detect_it():
 def test_findings_without_their_runs_are_pending(walker):
     assert bpref.f2_equal_and_skip_above_oracle(walker | {"quadruped-walk": []}).verdict == "pending"
     assert bpref.f3_mistake_and_stoc_hurt_most(walker).verdict == "pending"  # stoc, skip, myopic never ran
+
+
+
+def six_teachers(data, stoc, skip, myopic=950):
+    """The walker fixture's oracle (0.92), mistake (0.41) and equal (0.94) runs, and three seeds each of stoc, skip
+    and myopic ending at the given return + 10, 20, 30."""
+    for seed in (1, 2, 3):
+        keep(data, f"stoc_{seed}", seed, stoc + 10 * seed, "stoc")
+        keep(data, f"skip_{seed}", seed, skip + 10 * seed, "skip")
+        keep(data, f"myopic_{seed}", seed, myopic + 10 * seed, "myopic")
+    bpref.report.kept_runs.cache_clear()
+    return {"walker-walk": bpref.load_pool("walker-walk")}
+
+
+def test_mistake_and_stoc_lowest_and_below_the_oracle_is_f3_holding_for_pebble_alone(walker, tmp_path):
+    finding = bpref.f3_mistake_and_stoc_hurt_most(six_teachers(tmp_path / "data", stoc=450, skip=870))
+    assert finding.verdict == "in part: holds on walker-walk PEBBLE; PrefPPO not yet run with the six teachers"
+    assert finding.numbers[0].startswith("walker-walk PEBBLE: lowest first mistake 0.41, stoc 0.47, skip 0.89")
+
+
+def test_another_teacher_below_mistake_and_stoc_is_f3_not_holding(walker, tmp_path):
+    finding = bpref.f3_mistake_and_stoc_hurt_most(six_teachers(tmp_path / "data", stoc=450, skip=290))
+    assert finding.verdict == "does not hold on walker-walk PEBBLE"
+    assert finding.numbers[0].startswith("walker-walk PEBBLE: lowest first skip 0.31, mistake 0.41, stoc 0.47")
+    assert finding.numbers[0].endswith("; skip below mistake; skip below stoc")
+
+
+def test_stoc_level_with_the_oracle_and_nothing_below_it_is_f3_not_detected(walker, tmp_path):
+    finding = bpref.f3_mistake_and_stoc_hurt_most(six_teachers(tmp_path / "data", stoc=900, skip=910))
+    assert "stoc - oracle +0.00 [" in finding.numbers[0]
+    assert finding.verdict == "not detected at this scale on walker-walk PEBBLE"
+
+
+def test_skip_above_the_oracle_and_equal_level_is_f2_not_detected_and_skip_below_it_not_holding(tmp_path,
+                                                                                                 monkeypatch):
+    def pool(skip):
+        data = tmp_path / f"skip_{skip}"
+        for seed in (1, 2, 3):
+            keep(data, f"sac_{seed}", seed, 1000, truth=True)
+            keep(data, f"oracle_{seed}", seed, 900 + 20 * seed)
+            keep(data, f"equal_{seed}", seed, 910 + 20 * seed, "equal")
+            keep(data, f"skip_{seed}", seed, skip + 10 * seed, "skip")
+        monkeypatch.setattr(bpref, "POOLS", {"walker-walk": (str(data),)})
+        return {"quadruped-walk": bpref.load_pool("walker-walk")}
+
+    finding = bpref.f2_equal_and_skip_above_oracle(pool(skip=1000))
+    assert finding.numbers[0].startswith("equal 0.95 (n = 3) against the oracle's 0.94 (n = 3): equal - oracle +0.01")
+    assert finding.numbers[1].startswith("skip 1.02 (n = 3) against the oracle's 0.94 (n = 3): skip - oracle +0.08")
+    assert finding.numbers[1].endswith(": higher")
+    assert finding.verdict == "not detected at this scale (the intervals beside)"
+    assert bpref.f2_equal_and_skip_above_oracle(pool(skip=300)).verdict == "does not hold: below the oracle"
