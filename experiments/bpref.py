@@ -168,6 +168,8 @@ def f1_pebble_above_prefppo(pool) -> Finding:
         verdict = f"holds: PEBBLE higher on {len(higher)} of {len(calls)} tasks, most on {widest}"
     elif len(lower) >= len(calls) / 2:
         verdict = f"does not hold: PrefPPO higher on {len(lower)} of {len(calls)} tasks"
+    elif len(higher) > len(calls) / 2:
+        verdict = f"in part: PEBBLE higher on {len(higher)} of {len(calls)} tasks, but most on {widest}"
     else:
         verdict = (f"not detected at this scale: PEBBLE higher on {len(higher)} of {len(calls)} tasks "
                    f"({', '.join(higher) or 'none'}), the widest gap on {widest}")

@@ -10,7 +10,7 @@ import bpref
 
 
 def keep(folder, name, seed, final, teacher="oracle", sampler="disagreement", schedule="uniform", truth=False,
-         smoothing=0.0, shares=None):
+         smoothing=0.0, shares=None, prefppo=False):
     """A kept walker-walk PEBBLE run (config.json, eval.csv; labels.csv with the equal answers of `shares`, one
     number a session, 10 queries each)."""
     path = folder / name
@@ -18,6 +18,8 @@ def keep(folder, name, seed, final, teacher="oracle", sampler="disagreement", sc
     config = {"exp_name": "pebble", "env_id": "walker-walk", "seed": seed, "teacher": teacher, "sampler": sampler,
               "schedule": schedule, "max_feedback": 1000, "feedback_per_session": 100, "ground_truth_reward": truth,
               "total_timesteps": 100000, "label_smoothing": smoothing}
+    if prefppo:  # report.setting_of tells PrefPPO's config by its num_envs
+        config |= {"exp_name": "prefppo", "num_envs": 8}
     (path / "config.json").write_text(json.dumps(config))
     (path / "eval.csv").write_text("step,episode_return,success_rate,reward_correlation,wall_time\n"
                                    f"50000,10.0,0.0,0.5,600\n100000,{final},0.0,0.8,1200\n")
@@ -150,3 +152,30 @@ def test_skip_above_the_oracle_and_equal_level_is_f2_not_detected_and_skip_below
     assert finding.numbers[1].endswith(": higher")
     assert finding.verdict == "not detected at this scale (the intervals beside)"
     assert bpref.f2_equal_and_skip_above_oracle(pool(skip=300)).verdict == "does not hold: below the oracle"
+
+
+def test_pebble_above_prefppo_with_the_widest_gap_on_manipulation_is_f1_holding(tmp_path, monkeypatch):
+    def task(name, pebble, prefppo):
+        data = tmp_path / name
+        for seed in (1, 2, 3):
+            keep(data, f"sac_{seed}", seed, 1000, truth=True)
+            keep(data, f"ppo_{seed}", seed, 500, truth=True, prefppo=True)
+            keep(data, f"pebble_{seed}", seed, pebble + 10 * seed)
+            keep(data, f"prefppo_{seed}", seed, prefppo + 5 * seed, prefppo=True)
+        monkeypatch.setattr(bpref, "POOLS", {"walker-walk": (str(data),)})
+        return bpref.load_pool("walker-walk")
+
+    # normalised: walker-walk PEBBLE 0.92, PrefPPO 0.84; "button-press" (the same runs' task, named so) 0.92 and 0.44
+    pool = {"walker-walk": task("walker", 900, 410), "button-press": task("press", 900, 210)}
+    finding = bpref.f1_pebble_above_prefppo(pool)
+    assert finding.numbers[0].startswith("walker-walk: PEBBLE 0.92 (n = 3), PrefPPO 0.84 (n = 3); "
+                                         "PEBBLE - PrefPPO +0.08")
+    assert finding.verdict == "holds: PEBBLE higher on 2 of 2 tasks, most on button-press"
+    pool = {"walker-walk": task("walker-wide", 900, 110), "button-press": pool["button-press"]}
+    verdict = bpref.f1_pebble_above_prefppo(pool).verdict
+    assert verdict == "in part: PEBBLE higher on 2 of 2 tasks, but most on walker-walk"
+    pool = {"walker-walk": task("walker-level", 900, 455), "button-press": pool["button-press"]}  # 0.92, 0.92
+    assert bpref.f1_pebble_above_prefppo(pool).verdict == ("not detected at this scale: PEBBLE higher on 1 of 2 tasks "
+                                                          "(button-press), the widest gap on button-press")
+    pool = {"walker-walk": task("walker-low", 300, 410), "button-press": task("press-low", 300, 410)}
+    assert bpref.f1_pebble_above_prefppo(pool).verdict == "does not hold: PrefPPO higher on 2 of 2 tasks"
