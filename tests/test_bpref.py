@@ -57,7 +57,8 @@ def walker(tmp_path, monkeypatch):
 
 
 def test_uncertainty_samplers_above_uniform_and_coverage_level_and_slower_is_f4_holding(walker):
-    finding = bpref.f4_uncertainty_samplers(walker, {"coverage": 1.3})
+    slower = {"coverage": 1.3, "disagreement-coverage": 1.29, "entropy-coverage": 1.26}
+    finding = bpref.f4_uncertainty_samplers(walker, slower)
     assert finding.verdict == "holds"
     assert any(line.startswith("disagreement 0.92 (n = 3), - uniform +0.41 [") and line.endswith(": higher")
                for line in finding.numbers)
@@ -65,7 +66,10 @@ def test_uncertainty_samplers_above_uniform_and_coverage_level_and_slower_is_f4_
                for line in finding.numbers)
     # coverage - uniform: +0.015, pooled spread 0.016: 2 x (2.8 x 0.016 / 0.015)^2 = 18 seeds, too many to say
     assert not any("seeds a side would" in line for line in finding.numbers)
-    assert bpref.f4_uncertainty_samplers(walker, {"coverage": 0.9}).verdict.startswith("not detected")  # not slower
+    not_slower = slower | {"coverage": 0.9}
+    assert bpref.f4_uncertainty_samplers(walker, not_slower).verdict == (
+        "not detected at this scale: disagreement higher, entropy higher, coverage level, disagreement-coverage level, "
+        "entropy-coverage level; the coverage samplers not slower")
 
 
 def test_a_schedule_below_and_one_level_with_uniform_is_f5_holding(walker):
@@ -179,3 +183,20 @@ def test_pebble_above_prefppo_with_the_widest_gap_on_manipulation_is_f1_holding(
                                                           "(button-press), the widest gap on button-press")
     pool = {"walker-walk": task("walker-low", 300, 410), "button-press": task("press-low", 300, 410)}
     assert bpref.f1_pebble_above_prefppo(pool).verdict == "does not hold: PrefPPO higher on 2 of 2 tasks"
+
+
+def test_smoothing_within_15_percent_holds_f7_and_a_wide_interval_leaves_it_not_detected(tmp_path, monkeypatch):
+    def finding(smoothed):
+        data = tmp_path / "_".join(map(str, smoothed))
+        for seed, final in enumerate(smoothed, 1):
+            keep(data, f"sac_{seed}", seed, 1000, truth=True)
+            keep(data, f"mistake_{seed}", seed, 400 + 10 * seed, "mistake")
+            keep(data, f"smoothing_{seed}", seed, final, "mistake", smoothing=0.1)
+        monkeypatch.setattr(bpref, "POOLS", {"walker-walk": (str(data),)})
+        return bpref.f7_label_smoothing({"walker-walk": bpref.load_pool("walker-walk")})
+
+    # without smoothing 0.42: 15% of it is 0.063
+    assert finding((400, 410, 420)).verdict == "holds: smoothing no better by more than 15% (the interval beside)"
+    wide = finding((300, 420, 600))  # mean 0.44, its CI reaching about +0.15
+    assert wide.verdict == "not detected at this scale: the interval reaches a gain above 15%"
+    assert wide.numbers[0].startswith("smoothing 0.44 (n = 3), without 0.42 (n = 3): smoothing - without +0.02 [")
