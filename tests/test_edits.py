@@ -5,6 +5,7 @@ import difflib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -55,3 +56,28 @@ def test_raw_reward_inputs_run_pebble_with_the_reference_s_raw_observations(scri
     saved = torch.load(out / "final_model.pt", weights_only=True)["reward_model"]
     assert not saved["input_mean"].any() and (saved["input_std"] == 1).all()  # the identity: raw inputs
     assert saved["input_clip"].item() == float("inf")
+
+
+@pytest.mark.parametrize("edits", [[], ["reference-thresholds"]], ids=["ours", "reference-thresholds"])
+def test_reference_thresholds_apply_eps_twice_after_the_first_session(edits, tmp_path):
+    """The equal teacher (eps 0.1) ties a pair where its returns differ by less than delta_equal: eps x |scale| in
+    every session (ours); eps x |scale| in the first and eps^2 x |scale| after it (the reference's)."""
+    out = tmp_path / "run"
+    flags = ["--env-id", "Pendulum-v1", "--teacher", "equal", "--total-timesteps", "900", "--seed-steps", "200",
+             "--unsup-steps", "200", "--feedback-every", "200", "--max-feedback", "90", "--feedback-per-session", "30",
+             "--segment-len", "10", "--eval-every", "900", "--hidden-dim", "32", "--batch-size", "32",
+             "--reward-epochs", "1", "--reward-batch-size", "32", "--eval-episodes", "1", "--output-dir", str(out)]
+    result = run_cli(EDIT_SCRIPT, *edits, "--", "pebble.py", *flags) if edits else run_cli("pebble.py", *flags)
+    assert result.returncode == 0, result.stderr[-3000:]
+    from sim_teacher import load_labels
+
+    sessions = load_labels(str(out))
+    assert len(sessions) == 3
+    between = 0  # pairs tied by ours and not by the reference's, after the first session
+    for i, session in enumerate(sessions):
+        gap = np.abs(session["rewards0"].sum(1) - session["rewards1"].sum(1))
+        eps = 0.1 if i == 0 or not edits else 0.01
+        np.testing.assert_array_equal(session["y"] == 0.5, gap < eps * abs(session["threshold_scale"]))
+        between += i > 0 and int(((gap >= 0.01 * abs(session["threshold_scale"]))
+                                  & (gap < 0.1 * abs(session["threshold_scale"]))).sum())
+    assert between > 0  # so the two ways label some pair differently

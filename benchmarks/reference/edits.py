@@ -34,6 +34,15 @@ EDITS = {
             "    reward_model.set_input_stats(states[..., : segments[\"obs0\"].shape[-1]].flatten(0, 1))\n",
             ""), ("        reward_model.set_input_stats(buffer.obs[: buffer.size])\n", "        pass\n")],
     },
+    # The reference's skip and equal thresholds: eps applied twice after the first session (defect 1,
+    # differences.md 1), 10x smaller with eps = 0.1
+    "reference-thresholds": {script: [(
+        "    teacher.set_thresholds(mean_return, args.segment_len, episode_len)\n",
+        "    teacher.set_thresholds(mean_return, args.segment_len, episode_len)  # then eps again\n"
+        "    if progress.sessions_done > 0:\n"
+        "        teacher.delta_skip *= teacher.eps_skip\n"
+        "        teacher.delta_equal *= teacher.eps_equal\n")] for script in ("pebble.py", "prefppo.py", "rime.py",
+                                                                            "qpa.py")},
     # The reference PrefPPO's SB3 ends an episode at its time limit as at a termination (differences.md 16)
     "no-bootstrap-time-limits": {
         "prefppo.py": [("torch.as_tensor(~terminated, device=device)", "torch.as_tensor(~ends, device=device)")],
