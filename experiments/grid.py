@@ -674,6 +674,9 @@ def plan(runs: list[Run], root: Path, spec: dict, retry_non_finite: bool = False
         if state != "new" and recorded and recorded["command"] != list(run.flags):
             refused.append((run, f"{run_dir} holds a run of other flags ({shlex.join(recorded['command'])}); choose "
                                  "another --root or move it away"))
+        elif state != "new" and recorded and recorded.get("edits", []) != list(run.edits):
+            refused.append((run, f"{run_dir} holds a run with edits {recorded.get('edits', [])} (this grid's: "
+                                 f"{list(run.edits)}); choose another --root or move it away"))
         elif state == "finished":
             finished.append(run.name)
         elif state == "resumable" and recorded and recorded.get("exit_code") == 3 and not retry_non_finite:
@@ -716,7 +719,7 @@ def run_grid(grid: Grid) -> int:
             aside.parent.mkdir(exist_ok=True)
             shutil.move(root / run.name, aside)
             print(f"{run.name}: stopped before a checkpoint; moved to {aside}, starting afresh", flush=True)
-        spec[run.name] = {"command": list(run.flags), "exit_code": None}
+        spec[run.name] = {"command": list(run.flags), "edits": list(run.edits), "exit_code": None}
     save_spec(root, spec)
     spec_lock = threading.Lock()
 

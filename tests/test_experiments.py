@@ -113,6 +113,22 @@ def test_edits_run_our_scripts_through_the_edits_runner_and_are_checked(tmp_path
     assert wrong.returncode == 2 and "--edits 'raw-reward-input' is not an edit of prefppo.py" in wrong.stderr
 
 
+def test_a_finished_run_without_the_grid_s_edits_is_refused_not_counted_as_done(tmp_path):
+    [run, *_] = grid.expand(grid.Grid(env_ids=("walker-walk",), teachers=("equal",), seeds=(1,)))
+    edited = replace(run, edits=("reference-thresholds",))
+    (tmp_path / run.name).mkdir()
+    (tmp_path / run.name / "config.json").write_text(json.dumps({"total_timesteps": 1000}))
+    (tmp_path / run.name / "eval.csv").write_text("step,episode_return\n1000,500.0\n")
+    (tmp_path / run.name / "final_model.pt").write_bytes(b"model")
+    spec = {run.name: {"command": list(run.flags), "exit_code": 0}}  # written before grid.json kept edits: none
+    assert grid.plan([run], tmp_path, spec) == ([], [], [run.name])
+    todo, refused, finished = grid.plan([edited], tmp_path, spec)
+    assert (todo, finished) == ([], []) and "holds a run with edits [] (this grid's: ['reference-thresholds'])" in \
+        refused[0][1]
+    spec[run.name]["edits"] = ["reference-thresholds"]
+    assert grid.plan([edited], tmp_path, spec) == ([], [], [run.name])
+
+
 def test_a_run_stopped_on_a_non_finite_value_is_resumed_only_when_asked(tmp_path):
     [run, *_] = grid.expand(grid.Grid(env_ids=("walker-walk",), teachers=("oracle",), seeds=(1,)))
     (tmp_path / run.name).mkdir()
