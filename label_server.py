@@ -651,6 +651,7 @@ async function show(newState) {
   if (wanted !== want) return;  // a newer state came meanwhile
   shown = want;
   tick = 0;
+  draw(false);  // the first frames on screen before the buttons take answers
   updateButtons();
   if (state.after !== null) loadPair(state.session, state.after).catch(() => {});
 }
