@@ -139,7 +139,8 @@ def test_qpa_flags_become_the_overrides_of_qpas_walker_run():
     for flags, error in (({"sampler": "disagreement"}, "--sampler disagreement: QPA's code has uniform only"),
                          ({"reward_updates": 0}, "--reward-updates and --query-recent-episodes: QPA's code needs"),
                          ({"ground_truth_reward": True}, "--ground-truth-reward: only with --algorithm pebble"),
-                         ({"rime_alpha": 0.5}, "--rime-alpha is not a setting of qpa")):
+                         ({"rime_alpha": 0.5}, "--rime-alpha is not a setting of qpa"),
+                         ({"total_timesteps": 4000}, "--total-timesteps 4000: the reference evaluates every")):
         assert reference_run.resolve(reference_run.Args(output_dir="x", algorithm="qpa", **flags)).startswith(error)
     assert reference_run.resolve(reference_run.Args(output_dir="x", her_ratio=0.5)) == "--her-ratio is not a " \
                                                                                      "setting of pebble"

@@ -220,6 +220,9 @@ def resolve(args: Args) -> str | None:
             return f"--{name.replace('_', '-')} {getattr(args, name)}: QPA's code has {value} only"
     if args.algorithm == "qpa" and not (args.reward_updates and args.query_recent_episodes):
         return "--reward-updates and --query-recent-episodes: QPA's code needs both >= 1 on DMC"
+    if args.algorithm != "prefppo" and args.total_timesteps < args.eval_every:
+        return (f"--total-timesteps {args.total_timesteps}: the reference evaluates every --eval-every "
+                f"{args.eval_every} steps only, so a run this short has no evaluation")
     return None
 
 
