@@ -37,6 +37,11 @@ POOLS = {
     "sweep-into": ("docs/tasks/data/sweep-into-250k", "docs/tasks/data/sweep-into-prefppo"),
 }
 MANIPULATION = ("button-press", "sweep-into")
+# A finding's verdict waits until its block's runs are all kept (its numbers show as they come); F3's, per pair
+FINDING_PRESETS = {"F1": "bpref-walker-prefppo", "F2": "bpref-quadruped-walk", "F4": "bpref-walker-samplers",
+                   "F4a": "bpref-walker-samplers-equal", "F5": "bpref-walker-schedules", "F7": "bpref-walker-smoothing"}
+PAIR_PRESETS = {("walker-walk", "pebble"): "bpref-walker-teachers", ("walker-walk", "prefppo"): "bpref-walker-prefppo",
+                ("button-press", "pebble"): "bpref-button-press", ("quadruped-walk", "pebble"): "bpref-quadruped-walk"}
 COVERAGE = ("coverage", "disagreement-coverage", "entropy-coverage")  # the paper's coverage-based samplers
 
 
@@ -141,6 +146,20 @@ def pending(*presets: str) -> str:
     return f"pending: runs of {', '.join(f'`{p}`' for p in presets)} not yet kept"
 
 
+def kept_of(preset: str) -> tuple[list[Path], int]:
+    """The kept run folders of a block's preset and the number of runs it plans."""
+    block = next(block for block in BLOCKS if block.preset == preset)
+    planned = [run.name for run in grid.expand(grid.PRESETS[preset][1])]
+    kept = [DATA / block.folder / name for name in planned if (DATA / block.folder / name / "eval.csv").exists()]
+    return kept, len(planned)
+
+
+def unfinished(preset: str) -> str | None:
+    """'pending: k of n runs of `preset` kept' while a block has runs to keep, else None."""
+    kept, planned = kept_of(preset)
+    return None if len(kept) == planned else f"pending: {len(kept)} of {planned} runs of `{preset}` kept"
+
+
 # ---------------------------------------------------------------- the findings
 
 
@@ -212,10 +231,11 @@ def f2_equal_and_skip_above_oracle(pool) -> Finding:
                    "PEBBLE, quadruped-walk, 250K steps, 1000 labels", "[quadruped-walk](#the-tasks)", lines, verdict)
 
 
-def f3_mistake_and_stoc_hurt_most(pool) -> Finding:
+def f3_mistake_and_stoc_hurt_most(pool, waiting=None) -> Finding:
     """Per task and algorithm that ran all six teachers: holds where mistake and stoc are the two lowest and both
     below the oracle; does not hold where either is above the oracle or another teacher is below either of them
-    (each a comparison by the rule above); else not detected."""
+    (each a comparison by the rule above); else not detected. waiting: {(task, algorithm): text} for the pairs
+    whose block is not all kept (no verdict yet)."""
     lines = []
     outcomes = {}
     for task, runs in pool.items():
@@ -224,6 +244,9 @@ def f3_mistake_and_stoc_hurt_most(pool) -> Finding:
             if any(len(values) < 2 for values in means.values()):
                 continue
             pair = f"{task} {report.ARM_NAMES[(algorithm, False)]}"
+            if (waiting or {}).get((task, algorithm)):
+                lines.append(f"{pair}: {waiting[(task, algorithm)]}")
+                continue
             calls = {t: compare(values, means["oracle"]) for t, values in means.items() if t != "oracle"}
             ranked = sorted(means, key=lambda t: means[t].mean())
             hurt_more = [f"{t} below {worst}" for t in ("skip", "equal", "myopic") for worst in ("mistake", "stoc")
@@ -265,7 +288,8 @@ def f4_uncertainty_samplers(pool, speed: dict[str, float]) -> Finding:
             lines.append(f"{sampler}: {pending('bpref-walker-samplers')}")
             continue
         calls[sampler] = result
-        lines.append(f"{sampler} {mean_text(result.new)}, - uniform {result.text()}")
+        lines.append(f"{sampler} {mean_text(result.new)}, uniform {mean_text(uniform)}: {sampler} - uniform "
+                     f"{result.text()}")
     if speed:
         lines.append("query selection per session, x disagreement's: " + ", ".join(
             f"{sampler} {ratio:.2f}" for sampler, ratio in speed.items()))
@@ -347,7 +371,8 @@ def f5_schedules(pool) -> Finding:
             lines.append(f"{schedule}: {pending('bpref-walker-schedules')}")
             continue
         calls.append(result)
-        lines.append(f"{schedule} {mean_text(result.new)}, - uniform {result.text()}")
+        lines.append(f"{schedule} {mean_text(result.new)}, uniform {mean_text(uniform)}: {schedule} - uniform "
+                     f"{result.text()}")
     if len(calls) < 2:
         verdict = "pending"
     elif any(c.call == "higher" for c in calls):
@@ -468,18 +493,24 @@ def blocks_block() -> str:
     """Per block: its preset, the runs kept of those it plans and the core-hours they took (one thread a run)."""
     rows = []
     for block in BLOCKS:
-        planned = [run.name for run in grid.expand(grid.PRESETS[block.preset][1])]
-        kept = [DATA / block.folder / name for name in planned if (DATA / block.folder / name / "eval.csv").exists()]
+        kept, planned = kept_of(block.preset)
         seconds = sum(grid.read_eval(path)[-1]["wall_time"] for path in kept)
-        rows.append([block.letter, block.what, f"`{block.preset}`", f"{len(kept)} of {len(planned)}",
+        rows.append([block.letter, block.what, f"`{block.preset}`", f"{len(kept)} of {planned}",
                      f"{seconds / 3600:.1f}"])
     return "\n".join(report.table(["block", "runs", "preset", "kept", "core-hours"], rows))
 
 
 def findings(pool) -> list[Finding]:
-    return [f1_pebble_above_prefppo(pool), f2_equal_and_skip_above_oracle(pool), f3_mistake_and_stoc_hurt_most(pool),
-            f4_uncertainty_samplers(pool, sampler_speed()), f4a_equal_answers(pool), f5_schedules(pool),
-            f6_alignment(pool), f7_label_smoothing(pool)]
+    """Every finding; a verdict resting on a block with runs still to keep reads 'pending: k of n runs kept'."""
+    waiting = {pair: unfinished(preset) for pair, preset in PAIR_PRESETS.items()}
+    found = [f1_pebble_above_prefppo(pool), f2_equal_and_skip_above_oracle(pool),
+             f3_mistake_and_stoc_hurt_most(pool, waiting), f4_uncertainty_samplers(pool, sampler_speed()),
+             f4a_equal_answers(pool), f5_schedules(pool), f6_alignment(pool), f7_label_smoothing(pool)]
+    for finding in found:
+        preset = FINDING_PRESETS.get(finding.key)
+        if preset and unfinished(preset):
+            finding.verdict = unfinished(preset)
+    return found
 
 
 def findings_block() -> str:

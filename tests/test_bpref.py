@@ -60,7 +60,8 @@ def test_uncertainty_samplers_above_uniform_and_coverage_level_and_slower_is_f4_
     slower = {"coverage": 1.3, "disagreement-coverage": 1.29, "entropy-coverage": 1.26}
     finding = bpref.f4_uncertainty_samplers(walker, slower)
     assert finding.verdict == "holds"
-    assert any(line.startswith("disagreement 0.92 (n = 3), - uniform +0.41 [") and line.endswith(": higher")
+    assert any(line.startswith("disagreement 0.92 (n = 3), uniform 0.51 (n = 3): disagreement - uniform +0.41 [")
+               and line.endswith(": higher")
                for line in finding.numbers)
     assert any(line.startswith("coverage") and line.endswith("no difference detected, level")
                for line in finding.numbers)
@@ -106,6 +107,33 @@ def test_findings_without_their_runs_are_pending(walker):
     assert bpref.f2_equal_and_skip_above_oracle(walker | {"quadruped-walk": []}).verdict == "pending"
     assert bpref.f3_mistake_and_stoc_hurt_most(walker).verdict == "pending"  # stoc, skip, myopic never ran
 
+
+
+def test_a_verdict_waits_until_its_block_is_all_kept(walker, tmp_path, monkeypatch):
+    """The walker fixture's F4 holds; with one of the samplers block's two runs kept it is pending, and F3's
+    walker-walk PEBBLE pair waits on the teachers block (its numbers beside, no outcome)."""
+    presets = dict(bpref.grid.PRESETS)
+    presets["bpref-walker-samplers"] = ("", bpref.grid.Grid(teachers=("oracle",), budgets=("1000/100",), seeds=(1, 2),
+                                                           samplers=("uniform",), ground_truth=False))
+    monkeypatch.setattr(bpref.grid, "PRESETS", presets)
+    monkeypatch.setattr(bpref, "DATA", tmp_path / "blocks")
+    monkeypatch.setattr(bpref, "sampler_speed", lambda: {"coverage": 1.3, "disagreement-coverage": 1.29,
+                                                         "entropy-coverage": 1.26})
+    names = [run.name for run in bpref.grid.expand(presets["bpref-walker-samplers"][1])]
+    keep(tmp_path / "blocks" / "walker-walk", names[0], 1, 500)
+    walker = walker | {"quadruped-walk": []}
+    found = {finding.key: finding for finding in bpref.findings(walker)}
+    assert found["F4"].verdict == "pending: 1 of 2 runs of `bpref-walker-samplers` kept"
+    assert any(line.startswith("entropy 0.90 (n = 3)") for line in found["F4"].numbers)
+    assert found["F5"].verdict.startswith("pending: 0 of 10 runs of `bpref-walker-schedules` kept")
+    keep(tmp_path / "blocks" / "walker-walk", names[1], 2, 510)
+    assert bpref.f4_uncertainty_samplers(walker, bpref.sampler_speed()).verdict == "holds"
+    assert {f.key: f for f in bpref.findings(walker)}["F4"].verdict == "holds"
+    six = six_teachers(tmp_path / "data", stoc=450, skip=870)
+    waiting = {("walker-walk", "pebble"): "pending: 3 of 20 runs of `bpref-walker-teachers` kept"}
+    finding = bpref.f3_mistake_and_stoc_hurt_most(six, waiting)
+    assert finding.verdict == "pending"
+    assert finding.numbers[0] == "walker-walk PEBBLE: pending: 3 of 20 runs of `bpref-walker-teachers` kept"
 
 
 def six_teachers(data, stoc, skip, myopic=950):
