@@ -452,7 +452,8 @@ def sampler_speed() -> dict[str, float]:
 
 def teacher_rows(runs) -> list[dict]:
     """The paper's Figure 2 on a task: IQM per teacher and algorithm (their budgets differ: set aside)."""
-    default = [r for r in runs if r.setting[4:] == ("disagreement", "uniform") and r.setting[2] != SMOOTHED]
+    default = [r for r in runs if r.setting[4:] == ("disagreement", "uniform") and r.setting[2] != SMOOTHED
+               and r.normalized is not None]  # PrefPPO waits for its PPO runs on walker-walk
     budgets = sorted({(r.setting[0], r.setting[3]) for r in default if r.setting[3] != "-"})
     label = ", ".join(f"{algorithm} {budget}" for algorithm, budget in budgets)
     return [row | {"budget": label} for row in report.setting_aggregates(default, REPS, SEED)]
