@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from grid import read_eval, run_state  # noqa: E402
+from samplers import SAMPLERS, SCHEDULES  # noqa: E402
 from sim_teacher import TEACHERS, make_teacher  # noqa: E402
 
 SETTING = ("algorithm", "task", "teacher", "budget", "sampler", "schedule")
@@ -201,6 +202,14 @@ def teacher_order(name: str) -> tuple:
     return (list(TEACHERS).index(base) if base in TEACHERS else len(TEACHERS), name)
 
 
+def axis_order(column: str):
+    """The paper's order along a figure's axis: teachers, samplers and schedules as listed in their modules."""
+    if column == "teacher":
+        return teacher_order
+    names = {"sampler": SAMPLERS, "schedule": SCHEDULES}.get(column, ())
+    return lambda value: (names.index(value) if value in names else len(names), str(value))
+
+
 def sort_key(setting: tuple) -> tuple:
     return setting[:2] + (teacher_order(setting[2]),) + setting[3:]
 
@@ -290,7 +299,7 @@ def bar_figures(rows: list[dict], x: str, hue: str, fixed: tuple[str, ...], out:
         figures[tuple(row[c] for c in fixed)][tuple(row[c] for c in panels_by)][(row[x], row[hue])] = row["iqm"]
     paths = []
     for fixed_values, panels in sorted(figures.items()):
-        order = teacher_order if x == "teacher" else str
+        order = axis_order(x)
         widest = max(len({k[0] for k in cells}) for cells in panels.values())
         hues = sorted({k[1] for cells in panels.values() for k in cells})
         plt, fig, axes = plt_figure(len(panels), 1, max(6.0, 1.1 * widest * max(1, len(hues)) ** 0.5 + 2),

@@ -534,6 +534,15 @@ def test_sampler_comparison_and_figure_2_are_drawn(synthetic):
     assert not (out / "samplers_pebble_quadruped-walk.png").exists()
 
 
+def test_figure_axes_follow_the_paper_s_order():
+    assert sorted(["entropy", "uniform", "entropy-coverage", "disagreement"], key=report.axis_order("sampler")) == [
+        "uniform", "disagreement", "entropy", "entropy-coverage"]
+    assert sorted(["increase", "uniform", "decay"], key=report.axis_order("schedule")) == ["uniform", "decay",
+                                                                                           "increase"]
+    assert sorted(["myopic", "mistake(label_smoothing=0.1)", "oracle"], key=report.axis_order("teacher")) == [
+        "oracle", "mistake(label_smoothing=0.1)", "myopic"]
+
+
 def test_a_teacher_is_named_with_the_overrides_that_change_it_and_label_smoothing():
     base = {"env_id": "walker-walk", "ground_truth_reward": False, "max_feedback": 500, "feedback_per_session": 50,
             "sampler": "entropy", "schedule": "decay"}
