@@ -311,6 +311,20 @@ PRESETS = {
         "5 seeds",
         Grid(env_ids=("quadruped-walk",), teachers=("stoc", "mistake", "skip", "equal"), budgets=("1000/100",),
              seeds=(1, 2, 3, 4, 5), ground_truth=False, root="runs/bpref-quadruped-walk", flags=CPU_QUADRUPED)),
+    # the skip and equal teachers with the reference's thresholds (eps applied again after the first session,
+    # differences.md 1), each in a root of its own: the runs' names do not say their edits
+    "bpref-walker-reference-thresholds": (
+        "PEBBLE with the skip and equal teachers as the reference's code thresholds them, walker-walk at the "
+        "README's CPU scale, 5 seeds",
+        Grid(teachers=("skip", "equal"), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5), ground_truth=False,
+             edits=("reference-thresholds",), root="runs/bpref-walker-reference-thresholds",
+             flags=CPU_PEBBLE + " --checkpoint-every 10000")),
+    "bpref-quadruped-reference-thresholds": (
+        "PEBBLE with the skip and equal teachers as the reference's code thresholds them, quadruped-walk at "
+        "quadruped-walk-cpu's scale, 5 seeds (F2 as the paper's figure met it)",
+        Grid(env_ids=("quadruped-walk",), teachers=("skip", "equal"), budgets=("1000/100",), seeds=(1, 2, 3, 4, 5),
+             ground_truth=False, edits=("reference-thresholds",), root="runs/bpref-quadruped-reference-thresholds",
+             flags=CPU_QUADRUPED)),
     "rime-mini-bpref": (
         "The mini B-Pref (six teachers + ground truth, 5 seeds) for RIME and for PEBBLE's default reward inputs",
         replace(MINI_BPREF, algorithms=("pebble", "rime"), root="runs/mini-bpref-rime")),

@@ -254,6 +254,18 @@ def test_bpref_presets_vary_one_axis_of_the_kept_runs_they_are_compared_with():
         assert base == parity[name.replace(f"__{teacher}__", "__oracle__")], name
 
 
+def test_the_reference_thresholds_presets_are_their_blocks_runs_with_the_edit_in_a_root_of_their_own():
+    for preset, block in (("bpref-walker-reference-thresholds", "bpref-walker-teachers"),
+                          ("bpref-quadruped-reference-thresholds", "bpref-quadruped-walk")):
+        edited = grid.expand(grid.PRESETS[preset][1])
+        plain = {run.name: run for run in grid.expand(grid.PRESETS[block][1])}
+        assert len(edited) == 10 and {r.flags[r.flags.index("--teacher") + 1] for r in edited} == {"skip", "equal"}
+        for run in edited:
+            assert run.edits == ("reference-thresholds",) and run.flags == plain[run.name].flags
+            assert plain[run.name].edits == ()
+        assert grid.PRESETS[preset][1].root != grid.PRESETS[block][1].root
+
+
 # ---------------------------------------------------------------- the tiny grid, run
 
 
