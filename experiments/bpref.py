@@ -36,6 +36,10 @@ POOLS = {
                      "docs/tasks/data/button-press-prefppo"),
     "sweep-into": ("docs/tasks/data/sweep-into-250k", "docs/tasks/data/sweep-into-prefppo"),
 }
+# The skip and equal teachers with the reference's thresholds (--edits reference-thresholds), kept apart from the
+# rest: a run's config.json does not say its edits
+EDITED = {"walker-walk": "docs/bpref/data/walker-walk-reference-thresholds",
+          "quadruped-walk": "docs/bpref/data/quadruped-walk-reference-thresholds"}
 MANIPULATION = ("button-press", "sweep-into")
 # A finding's verdict waits until its block's runs are all kept (its numbers show as they come); F3's, per pair
 FINDING_PRESETS = {"F1": "bpref-walker-prefppo", "F2": "bpref-quadruped-walk", "F4": "bpref-walker-samplers",
@@ -63,6 +67,10 @@ BLOCKS = (
     Block("e", "bpref-walker-prefppo", "walker-walk-prefppo", "walker-walk, PrefPPO: five teachers; PPO"),
     Block("f", "bpref-button-press", "button-press", "button-press, PEBBLE: five teachers"),
     Block("g", "bpref-quadruped-walk", "quadruped-walk", "quadruped-walk, PEBBLE: four teachers"),
+    Block("h", "bpref-walker-reference-thresholds", "walker-walk-reference-thresholds",
+          "walker-walk, PEBBLE: skip, equal with the reference's thresholds"),
+    Block("h", "bpref-quadruped-reference-thresholds", "quadruped-walk-reference-thresholds",
+          "quadruped-walk, PEBBLE: skip, equal with the reference's thresholds"),
 )
 
 
@@ -82,6 +90,15 @@ def load_pool(task: str) -> list[report.Run]:
 @functools.cache
 def pools() -> dict[str, list[report.Run]]:
     return {task: load_pool(task) for task in POOLS}
+
+
+def load_edited(task: str) -> list[report.Run]:
+    """The kept runs with the reference's thresholds on a task, normalised by the task's SAC runs."""
+    if not (ROOT / EDITED[task]).is_dir():
+        return []
+    edited = [replace(run) for run in report.kept_runs(EDITED[task])]
+    report.normalize(edited + [replace(run) for run in load_pool(task) if run.is_ground_truth])
+    return [run for run in edited if run.setting[0] == "pebble" and run.setting[1] == task]
 
 
 def arm(runs, algorithm, teacher, sampler="disagreement", schedule="uniform") -> list[report.Run]:
@@ -206,7 +223,9 @@ def f1_pebble_above_prefppo(pool) -> Finding:
                    lines, verdict)
 
 
-def f2_equal_and_skip_above_oracle(pool) -> Finding:
+def f2_equal_and_skip_above_oracle(pool, edited=None) -> Finding:
+    """The verdict is the paper's teachers' (its adaptive thresholds); edited: {task: runs} with the reference's
+    thresholds, each teacher beside the task's oracle on a line of its own."""
     runs = pool["quadruped-walk"]
     oracle = normalised(arm(runs, "pebble", "oracle"))
     lines = []
@@ -219,6 +238,12 @@ def f2_equal_and_skip_above_oracle(pool) -> Finding:
         calls.append(result.call)
         lines.append(f"{teacher} {mean_text(result.new)} against the oracle's {mean_text(oracle)}: "
                      f"{teacher} - oracle {result.text()}")
+    for task, runs in (edited or {}).items():
+        for teacher in ("equal", "skip"):
+            result = compare(normalised(arm(runs, "pebble", teacher)), normalised(arm(pool[task], "pebble", "oracle")))
+            if result is not None:
+                lines.append(f"{task}, the reference's thresholds: {teacher} {mean_text(result.new)}: {teacher} - "
+                             f"oracle {result.text()}")
     if len(calls) < 2:
         verdict = "pending"
     elif calls == ["higher", "higher"]:
@@ -504,7 +529,8 @@ def blocks_block() -> str:
 def findings(pool) -> list[Finding]:
     """Every finding; a verdict resting on a block with runs still to keep reads 'pending: k of n runs kept'."""
     waiting = {pair: unfinished(preset) for pair, preset in PAIR_PRESETS.items()}
-    found = [f1_pebble_above_prefppo(pool), f2_equal_and_skip_above_oracle(pool),
+    edited = {task: load_edited(task) for task in EDITED}
+    found = [f1_pebble_above_prefppo(pool), f2_equal_and_skip_above_oracle(pool, edited),
              f3_mistake_and_stoc_hurt_most(pool, waiting), f4_uncertainty_samplers(pool, sampler_speed()),
              f4a_equal_answers(pool), f5_schedules(pool), f6_alignment(pool), f7_label_smoothing(pool)]
     for finding in found:

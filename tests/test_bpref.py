@@ -183,6 +183,17 @@ def test_skip_above_the_oracle_and_equal_level_is_f2_not_detected_and_skip_below
     assert finding.numbers[1].startswith("skip 1.02 (n = 3) against the oracle's 0.94 (n = 3): skip - oracle +0.08")
     assert finding.numbers[1].endswith(": higher")
     assert finding.verdict == "not detected at this scale (the intervals beside)"
+    edited = tmp_path / "edited"
+    for seed in (1, 2, 3):
+        keep(edited, f"equal_{seed}", seed, 1100 + 10 * seed, "equal")
+    monkeypatch.setattr(bpref, "EDITED", {"walker-walk": str(edited)})
+    quadruped = {"quadruped-walk": bpref.load_pool("walker-walk")}  # still skip=1000's runs
+    with_edit = bpref.f2_equal_and_skip_above_oracle(quadruped, {"quadruped-walk": bpref.load_edited("walker-walk")})
+    assert with_edit.numbers[2].startswith("quadruped-walk, the reference's thresholds: equal 1.12 (n = 3): equal - "
+                                           "oracle +0.18 [")
+    assert with_edit.numbers[2].endswith(": higher") and len(with_edit.numbers) == 3  # no skip runs with the edit
+    assert with_edit.verdict == finding.verdict  # the verdict is the paper's teachers'
+    assert bpref.load_edited("walker-walk")[0].normalized == pytest.approx(1.11)
     assert bpref.f2_equal_and_skip_above_oracle(pool(skip=300)).verdict == "does not hold: below the oracle"
 
 
