@@ -534,9 +534,8 @@ def findings(pool) -> list[Finding]:
              f3_mistake_and_stoc_hurt_most(pool, waiting), f4_uncertainty_samplers(pool, sampler_speed()),
              f4a_equal_answers(pool), f5_schedules(pool), f6_alignment(pool), f7_label_smoothing(pool)]
     for finding in found:
-        preset = FINDING_PRESETS.get(finding.key)
-        if preset and unfinished(preset):
-            finding.verdict = unfinished(preset)
+        waits = unfinished(FINDING_PRESETS[finding.key]) if finding.key in FINDING_PRESETS else None
+        finding.verdict = waits or finding.verdict
     return found
 
 
