@@ -4,7 +4,8 @@ Per run, into a folder of the same name under --to: config.json and eval.csv; th
 feedback session (queries, skipped, equal) as labels.csv, one row a session; for a RIME run, its discriminator at
 every feedback session (the label files' trusted, flipped, dropped, precision and recall) as discriminator.csv,
 one row a session, which report.py --compare reads when the labels are gone; with --events, the TensorBoard files
-too (report.py --parity reads their training episodes where the reference's PrefPPO is compared).
+too (report.py --parity reads their training episodes where the reference's PrefPPO is compared); with --labels,
+the label files without the segments' observations and actions (what fit_teacher.py reads, a tenth of their size).
 Docs: docs/experiments.md
 
     python experiments/keep_runs.py runs/rime-eps0.3/rime__* --to docs/rime/data/eps0.3
@@ -19,6 +20,9 @@ from pathlib import Path
 import numpy as np
 import tyro
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import sim_teacher  # noqa: E402
+
 DISCRIMINATOR_KEYS = ("trusted", "flipped", "dropped", "precision", "recall")
 
 
@@ -30,6 +34,8 @@ class Args:
     """folder to keep them in (docs/.../data/...)"""
     events: bool = False
     """also keep the TensorBoard files (events.out.tfevents.*)"""
+    labels: bool = False
+    """also keep the label files, without the segments' observations and actions (for fit_teacher.py)"""
 
 
 def discriminator_rows(labels: Path) -> list[dict]:
@@ -63,7 +69,16 @@ def write_rows(path: Path, rows: list[dict]) -> None:
         writer.writerows(rows)
 
 
-def keep(run: Path, target: Path, events: bool) -> None:
+def keep_label_files(run: Path, target: Path) -> None:
+    """Each session's label file under target/labels, less the segments' obs0, actions0, obs1, actions1."""
+    for session, arrays in enumerate(sim_teacher.load_labels(str(run))):
+        kept = {key: value for key, value in arrays.items() if not key.startswith(("obs", "actions"))}
+        if kept["threshold_scale"] is None:  # a label file written before pebble.py saved it
+            del kept["threshold_scale"]
+        sim_teacher.save_labels(str(target), session, **kept)
+
+
+def keep(run: Path, target: Path, events: bool, labels: bool) -> None:
     target.mkdir(parents=True, exist_ok=True)
     names = ["config.json", "eval.csv"] + ([path.name for path in run.glob("events.out.tfevents.*")] if events else [])
     for name in names:
@@ -72,6 +87,8 @@ def keep(run: Path, target: Path, events: bool) -> None:
                        ("discriminator.csv", discriminator_rows(run / "labels"))):
         if rows:
             write_rows(target / name, rows)
+    if labels:
+        keep_label_files(run, target)
 
 
 def main(args: Args) -> None:
@@ -80,8 +97,13 @@ def main(args: Args) -> None:
         missing = [name for name in ("config.json", "eval.csv") if not (run / name).is_file()]
         if missing:
             sys.exit(f"error: {run}: no {' or '.join(missing)}: not a run folder")
+        if args.labels and not sim_teacher.label_files(str(run)):
+            sys.exit(f"error: {run}: no label files (labels/session_*.npz) to keep with --labels")
     for run in runs:
-        keep(run, Path(args.to) / run.name, args.events)
+        try:
+            keep(run, Path(args.to) / run.name, args.events, args.labels)
+        except ValueError as error:  # a malformed label file (sim_teacher.load_labels names it)
+            sys.exit(f"error: {error}")
         print(f"kept {run} -> {Path(args.to) / run.name}")
 
 

@@ -1045,6 +1045,28 @@ def teachers_table() -> str:
                             "rime.py - pebble.py [95% CI], Welch p", "verdict"], rows))
 
 
+TEACHER_FIT_FOLDER = "docs/teacher_fit/data"  # runs kept with their label files (keep_runs.py --labels)
+
+
+def teacher_fit_table() -> str:
+    """teacher_fit.md: fit_teacher.py on each kept run's labels: each parameter's estimate [95% CI], whether every
+    interval holds the run's teacher, and the goodness-of-fit check."""
+    fit_teacher = importlib.import_module("fit_teacher")
+    names = ("beta", "gamma", "eps_mistake", "eps_skip", "eps_equal", "bias")
+    rows = []
+    for run in sorted(kept_runs(TEACHER_FIT_FOLDER), key=lambda run: teacher_order(run.setting[2])):
+        data = fit_teacher.load_labels(str(run.path))
+        result = fit_teacher.fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], data["threshold_scale"])
+        truth = fit_teacher.run_teacher(str(run.path))
+        holds = all(result["ci"][name][0] <= truth[name] <= result["ci"][name][1] for name in names)
+        cells = ["{:.4g} [{:.4g}, {:.4g}]".format(result[name], *result["ci"][name]) for name in names]
+        rows.append([f"{teacher_text(run.setting[2])}, {run.config['sampler']} sampler, seed {run.config['seed']}",
+                     f"{result['n_strict']} / {result['n_equal']} / {result['n_skipped']}", *cells,
+                     "yes" if holds else "no", "yes" if "does NOT" not in result["check"]["verdict"] else "no"])
+    return "\n".join(table(["run's teacher", "strict / equal / skipped", *names, "every interval holds the teacher",
+                            "the check passes"], rows))
+
+
 def run_times_table() -> str:
     """results.md: minutes per run at CPU scale (one thread a run), and the first command's run on a GPU, projected
     from its first blocks of 10K steps (the last block's rate for the rest, as benchmarks/card_speed.py does)."""
@@ -1115,6 +1137,7 @@ DOCS_BLOCKS = [  # (page, block name, the function that writes the block)
     ("docs/results.md", "run-times", run_times_table),
     ("docs/differences.md", "raw-reward-inputs", raw_inputs_table),
     ("docs/results.md", "script-size", script_size_table),
+    ("docs/teacher_fit.md", "teacher-fit-runs", teacher_fit_table),
     # docs/bpref.md: experiments/bpref.py (which imports this module) writes its blocks and figures
     ("docs/bpref.md", "bpref-findings", lambda: importlib.import_module("bpref").findings_block()),
     ("docs/bpref.md", "bpref-task-figures", lambda: importlib.import_module("bpref").task_figures_block()),

@@ -213,6 +213,40 @@ def test_keep_runs_counts_each_session_s_skipped_and_equal_answers_into_labels_c
         "session,step,queries,skipped,equal", "0,11,5,1,2", "1,61,2,0,0"]
 
 
+def test_keep_runs_with_labels_keeps_what_fit_teacher_reads_without_the_segments(tmp_path):
+    import fit_teacher
+    run = tmp_path / "run"
+    keep_run(tmp_path, "run", {"total_timesteps": 100}, 5.0)
+    (run / "labels").mkdir()
+    rng = np.random.default_rng(0)
+    sessions = []
+    for session in range(2):
+        arrays = {"step": np.array(10 + 50 * session), "y": np.array([1.0, 0.0, 0.5]), "keep": np.ones(3, bool),
+                  "threshold_scale": np.array(2.5 + session)}
+        for side in "01":
+            arrays |= {f"rewards{side}": rng.random((3, 4), np.float32), f"obs{side}": rng.random((3, 4, 5)),
+                       f"actions{side}": rng.random((3, 4, 2))}
+        np.savez(run / "labels" / f"session_{session:04d}.npz", **arrays)
+        sessions.append(arrays)
+    cmd = [sys.executable, str(ROOT / "experiments" / "keep_runs.py"), str(run), "--to", str(tmp_path / "kept")]
+    kept = subprocess.run([*cmd, "--labels"], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert kept.returncode == 0, kept.stderr[-2000:]
+    files = sorted((tmp_path / "kept" / "run" / "labels").iterdir())
+    assert [file.name for file in files] == ["session_0000.npz", "session_0001.npz"]
+    for file, arrays in zip(files, sessions):
+        with np.load(file) as data:
+            assert sorted(data.files) == ["keep", "rewards0", "rewards1", "step", "threshold_scale", "y"]
+            for key in data.files:
+                np.testing.assert_array_equal(data[key], arrays[key])
+    assert fit_teacher.load_labels(str(tmp_path / "kept" / "run"))["threshold_scale"].tolist() == [2.5] * 3 + [3.5] * 3
+    (run / "labels" / "session_0000.npz").unlink()
+    (run / "labels" / "session_0001.npz").unlink()
+    refused = subprocess.run([*cmd, "--labels"], capture_output=True, text=True, env=ENV, cwd=ROOT)
+    assert refused.returncode != 0 and "Traceback" not in refused.stderr
+    assert refused.stderr.strip().splitlines() == [f"error: {run}: no label files (labels/session_*.npz) to keep "
+                                                   "with --labels"]
+
+
 def test_bpref_presets_vary_one_axis_of_the_kept_runs_they_are_compared_with():
     """Each block of B-Pref's findings changes only its axis (teacher, sampler, schedule, label smoothing) from the
     runs kept beside it: walker-walk's parity-pebble, button-press-cpu and quadruped-walk-cpu (oracle), rime-mistake
