@@ -1048,6 +1048,12 @@ def teachers_table() -> str:
 TEACHER_FIT_FOLDER = "docs/teacher_fit/data"  # runs kept with their label files (keep_runs.py --labels)
 
 
+def estimate_text(value: float, low: float | None, high: float | None) -> str:
+    """An estimate and its interval as fit_teacher.py prints them (4 significant digits, "-" for no end)."""
+    ends = ["-" if end is None else f"{end:.4g}" for end in (low, high)]
+    return f"{value:.4g} [{ends[0]}, {ends[1]}]"
+
+
 def teacher_fit_table() -> str:
     """teacher_fit.md: fit_teacher.py on each kept run's labels: each parameter's estimate [95% CI], whether every
     interval holds the run's teacher, and the goodness-of-fit check."""
@@ -1058,8 +1064,9 @@ def teacher_fit_table() -> str:
         data = fit_teacher.load_labels(str(run.path))
         result = fit_teacher.fit(data["rewards0"], data["rewards1"], data["y"], data["keep"], data["threshold_scale"])
         truth = fit_teacher.run_teacher(str(run.path))
-        holds = all(result["ci"][name][0] <= truth[name] <= result["ci"][name][1] for name in names)
-        cells = ["{:.4g} [{:.4g}, {:.4g}]".format(result[name], *result["ci"][name]) for name in names]
+        intervals = [result["ci"][name] for name in names]  # (None, None) where fitted again with a side bias
+        holds = all(low is not None and low <= truth[name] <= high for name, (low, high) in zip(names, intervals))
+        cells = [estimate_text(result[name], *interval) for name, interval in zip(names, intervals)]
         rows.append([f"{teacher_text(run.setting[2])}, {run.config['sampler']} sampler, seed {run.config['seed']}",
                      f"{result['n_strict']} / {result['n_equal']} / {result['n_skipped']}", *cells,
                      "yes" if holds else "no", "yes" if "does NOT" not in result["check"]["verdict"] else "no"])

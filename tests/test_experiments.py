@@ -247,6 +247,26 @@ def test_keep_runs_with_labels_keeps_what_fit_teacher_reads_without_the_segments
                                                    "with --labels"]
 
 
+def test_teacher_fit_table_says_whether_the_intervals_hold_each_run_s_teacher(tmp_path, monkeypatch):
+    """Simulated runs' labels: the oracle's intervals hold it; a teacher leaning left gets the side bias, with beta,
+    gamma and eps_mistake fitted again without intervals ("-"), so the table cannot say they hold it."""
+    import fit_teacher
+    from sim_teacher import SimTeacher
+    for name, teacher in (("oracle", SimTeacher()), ("leaning", SimTeacher(bias=-0.3))):
+        fit_teacher.simulate(str(tmp_path / name), teacher, pairs=400, sessions=4, seed=1)
+        config = json.loads((tmp_path / name / "config.json").read_text())
+        config |= {"exp_name": "pebble", "env_id": "walker-walk", "total_timesteps": 100, "seed": 1,
+                   "max_feedback": 400, "feedback_per_session": 100, "sampler": "uniform", "schedule": "uniform"}
+        (tmp_path / name / "config.json").write_text(json.dumps(config))
+        (tmp_path / name / "eval.csv").write_text("step,episode_return,wall_time\n100,1.0,1.0\n")
+    monkeypatch.setattr(report, "TEACHER_FIT_FOLDER", str(tmp_path))
+    rows = [line.split(" | ") for line in report.teacher_fit_table().splitlines()[2:]]
+    assert [row[0].removeprefix("| ") for row in rows] == ["oracle, uniform sampler, seed 1",
+                                                           "oracle, bias -0.3, uniform sampler, seed 1"]
+    assert rows[0][-2:] == ["yes", "yes |"]
+    assert rows[1][2].endswith("[-, -]") and rows[1][-2] == "no"  # beta fitted again with the bias
+
+
 def test_bpref_presets_vary_one_axis_of_the_kept_runs_they_are_compared_with():
     """Each block of B-Pref's findings changes only its axis (teacher, sampler, schedule, label smoothing) from the
     runs kept beside it: walker-walk's parity-pebble, button-press-cpu and quadruped-walk-cpu (oracle), rime-mistake
