@@ -140,8 +140,7 @@ class Comparison:
         words = self.word
         if self.call == "none" and self.seeds_needed() <= 15:
             words += f" (about {self.seeds_needed()} seeds a side would detect a gap this size)"
-        p = "p < 0.001" if self.welch_p < 0.001 else f"p = {self.welch_p:.3f}"  # as report.difference_text
-        return f"{point:+.2f} [{low:+.2f}, {high:+.2f}], {p}: {words}"
+        return f"{point:+.2f} [{low:+.2f}, {high:+.2f}], {report.p_text(self.welch_p)}: {words}"
 
 
 def compare(new: np.ndarray, base: np.ndarray) -> Comparison | None:

@@ -896,11 +896,14 @@ def difference_row(new: list[Run], base: list[Run]) -> dict:
             "difference": difference_ci(*finals, DOCS_REPS, DOCS_SEED), "welch_p": welch_p(*finals)}
 
 
+def p_text(p: float) -> str:
+    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}"
+
+
 def difference_text(row: dict) -> str:
     d = digits(row["metric"])
     point, low, high = row["difference"]
-    p = "p < 0.001" if row["welch_p"] < 0.001 else f"p = {row['welch_p']:.3f}"
-    return f"{point:+.{d}f} [{low:+.{d}f}, {high:+.{d}f}], {p}"
+    return f"{point:+.{d}f} [{low:+.{d}f}, {high:+.{d}f}], {p_text(row['welch_p'])}"
 
 
 def teacher_text(teacher: str) -> str:
