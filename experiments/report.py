@@ -1117,10 +1117,23 @@ def raw_inputs_table() -> str:
         correlations = [f"{np.mean([run.rows[-1]['reward_correlation'] for run in group]):.2f}"
                         for group in (standardised, raw_runs, reference)]
         rows.append([f"{setting[1]}, {teacher_text(setting[2])}", spread(standardised), spread(raw_runs),
-                     spread(reference), f"{difference_text(row)}: {verdict_word(row)}", " / ".join(correlations)])
+                     spread(reference), f"{difference_text(row)}: {verdict_word(row)}",
+                     paired_text(standardised, raw_runs), " / ".join(correlations)])
     return "\n".join(table(["pebble.py, 100K steps", "standardised (the default)", "raw", "reference code",
                             "standardised - raw [95% CI], Welch p: verdict",
+                            "seeds where standardised is higher (paired t-test)",
                             "final reward correlation (standardised / raw / reference)"], rows))
+
+
+def paired_text(new: list[Run], base: list[Run]) -> str:
+    """On how many seeds new's final score is above base's, and the paired t-test's p (the seeds both ran)."""
+    from scipy import stats
+
+    base_scores = {run.config["seed"]: run.score for run in base}
+    pairs = np.array([(run.score, base_scores[run.config["seed"]]) for run in new
+                      if run.config["seed"] in base_scores])
+    higher = int((pairs[:, 0] > pairs[:, 1]).sum())
+    return f"{higher} of {len(pairs)} ({p_text(float(stats.ttest_rel(pairs[:, 0], pairs[:, 1]).pvalue))})"
 
 
 def script_size_table() -> str:

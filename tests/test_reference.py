@@ -673,6 +673,20 @@ def test_a_gap_too_small_for_each_setting_shows_when_the_settings_are_pooled():
     assert row["relative_difference"] == 0 and row["low"] < 0 < row["high"] and row["p_lower"] == pytest.approx(0.5)
 
 
+def test_paired_text_pairs_the_seeds_both_arms_ran():
+    from types import SimpleNamespace
+
+    def arm(scores):  # seed -> final score
+        return [SimpleNamespace(score=score, config={"seed": seed}) for seed, score in scores.items()]
+
+    new = arm({1: 10.0, 2: 5.0, 3: 9.0, 4: 100.0})  # seed 4: the base did not run it
+    base = arm({3: 7.0, 1: 4.0, 2: 6.0})  # another order: pairs by seed, not by position
+    # differences 6, -1, 2: mean 7/3, sample variance 37/3, t = (7/3) / sqrt((37/3) / 3) = 7 / sqrt(37), 2 dof
+    t = 7 / np.sqrt(37)
+    p = 2 * (1 - (0.5 + t / (2 * np.sqrt(2 + t * t))))  # Student's t with 2 dof: closed-form CDF
+    assert report.paired_text(new, base) == f"2 of 3 (p = {p:.3f})"
+
+
 def test_moving_normaliser_statistics_cover_every_observation_up_to_each_step():
     # 2 envs, episodes of 2 steps, 2 waves; one observation dimension: episode e holds [10 e, 10 e + 1]
     episodes = [(np.array([[10.0 * e], [10.0 * e + 1]]), None, None, e) for e in range(4)]
