@@ -132,9 +132,6 @@ class Comparison:
         """A claim of "no better": the CI's upper end within report.LEVEL (15%) of the base's mean."""
         return self.difference[2] <= report.LEVEL * abs(self.base.mean())
 
-    def short(self) -> str:
-        return "level" if self.call == "none" and self.no_better() else self.call
-
     def text(self) -> str:
         point, low, high = self.difference
         words = self.word
@@ -330,11 +327,23 @@ def f4_uncertainty_samplers(pool, speed: dict[str, float]) -> Finding:
                 calls[s].call == "higher" for s in COVERAGE):
             verdict = "does not hold"
         else:
-            verdict = "not detected at this scale: " + ", ".join(f"{s} {c.short()}" for s, c in calls.items())
-            verdict += "" if slower else "; the coverage samplers not slower"
+            verdict = "not detected at this scale: " + "; ".join(samplers_undecided(calls, slower))
     return Finding("F4", "uncertainty samplers (disagreement, entropy) above uniform; coverage samplers no better "
                    "than uniform, and slower", "PEBBLE (oracle), walker-walk, 100K steps, 1000 labels; seconds "
                    "from benchmarks/sampler_speed.py", "[samplers](#samplers-and-schedules)", lines, verdict)
+
+
+def samplers_undecided(calls: dict[str, Comparison], slower: bool) -> list[str]:
+    """F4's three parts in words where the finding is not decided: the uncertainty samplers against uniform (with
+    the seeds a side that would detect their gaps), the coverage samplers' intervals, their speed."""
+    not_up = [s for s in ("disagreement", "entropy") if calls[s].call != "higher"]
+    seeds = " and ".join(str(calls[s].seeds_needed()) for s in not_up)
+    wide = [s for s in COVERAGE if not calls[s].no_better()]
+    return [f"{' and '.join(not_up)} not detected above uniform (about {seeds} seeds a side would detect "
+            f"{'their gaps' if len(not_up) > 1 else 'its gap'})" if not_up else "disagreement and entropy above uniform",
+            f"{', '.join(wide)}: the CI reaches a gain above 15% of uniform's mean, too wide to call no better" if wide
+            else "the coverage samplers level with uniform",
+            "the coverage samplers slower" if slower else "the coverage samplers not slower"]
 
 
 def equal_share(run: report.Run) -> float | None:

@@ -69,8 +69,28 @@ def test_uncertainty_samplers_above_uniform_and_coverage_level_and_slower_is_f4_
     assert not any("seeds a side would" in line for line in finding.numbers)
     not_slower = slower | {"coverage": 0.9}
     assert bpref.f4_uncertainty_samplers(walker, not_slower).verdict == (
-        "not detected at this scale: disagreement higher, entropy higher, coverage level, disagreement-coverage level, "
-        "entropy-coverage level; the coverage samplers not slower")
+        "not detected at this scale: disagreement and entropy above uniform; the coverage samplers level with uniform; "
+        "the coverage samplers not slower")
+
+
+def test_f4_undecided_names_the_seeds_that_would_decide_it_and_the_wide_coverage_intervals(tmp_path, monkeypatch):
+    # normalised by SAC's 1000: uniform 0.5-0.7; disagreement 0.03 and entropy 0.05 above it, each sd 0.1:
+    # 2 x (2.8 x 0.1 / 0.03)^2 = 174.2 -> 175 and 2 x (2.8 x 0.1 / 0.05)^2 = 62.7 -> 63 seeds a side;
+    # the coverage samplers 0.4-0.8, whose CIs reach far above 15% of uniform's 0.6
+    finals = {"uniform": (500, 600, 700), "disagreement": (530, 630, 730), "entropy": (550, 650, 750),
+              **{sampler: (400, 600, 800) for sampler in bpref.COVERAGE}}
+    for sampler, values in finals.items():
+        for seed, final in enumerate(values, 1):
+            keep(tmp_path, f"{sampler}_{seed}", seed, final, sampler=sampler)
+    for seed, final in enumerate((1000, 990, 1010), 1):
+        keep(tmp_path, f"sac_{seed}", seed, final, truth=True)
+    monkeypatch.setattr(bpref, "POOLS", {"walker-walk": (str(tmp_path),)})
+    pool = {"walker-walk": bpref.load_pool("walker-walk")}
+    slower = {"coverage": 1.3, "disagreement-coverage": 1.29, "entropy-coverage": 1.26}
+    assert bpref.f4_uncertainty_samplers(pool, slower).verdict == (
+        "not detected at this scale: disagreement and entropy not detected above uniform (about 175 and 63 seeds a "
+        "side would detect their gaps); coverage, disagreement-coverage, entropy-coverage: the CI reaches a gain "
+        "above 15% of uniform's mean, too wide to call no better; the coverage samplers slower")
 
 
 def test_a_schedule_below_and_one_level_with_uniform_is_f5_holding(walker):
