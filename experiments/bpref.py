@@ -387,8 +387,9 @@ def f4a_equal_answers(pool) -> Finding:
     elif any("lower" in c for c in calls.values()):
         verdict = "does not hold"
     else:
-        verdict = "not detected at this scale: " + ", ".join(f"{s}: share {a}, return {b}"
-                                                             for s, (a, b) in calls.items())
+        words = {"higher": "above", "none": "not told apart from"}  # "lower" does not hold, above
+        verdict = "not detected at this scale: " + "; ".join(
+            f"{s}: equal share {words[a]} uniform's, return {words[b]} uniform's" for s, (a, b) in calls.items())
     return Finding("F4a", "under the equal teacher, uncertainty samplers receive more equal answers yet learn more",
                    "PEBBLE (equal), walker-walk, 100K steps, 1000 labels, 3 seeds; share over sessions 2-10",
                    "[samplers](#samplers-and-schedules)", lines, verdict)

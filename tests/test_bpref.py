@@ -114,6 +114,20 @@ def test_equal_answers_are_counted_after_the_uniform_first_session(walker):
     assert finding.verdict == "holds"
 
 
+def test_f4a_undecided_says_which_part_is_not_told_apart(tmp_path, monkeypatch):
+    # the uncertainty samplers learn more (0.92 against 0.51) but receive uniform's share of equal answers
+    for seed, share in enumerate((0.1, 0.2, 0.1), 1):
+        keep(tmp_path, f"sac_{seed}", seed, (1000, 990, 1010)[seed - 1], truth=True)
+        keep(tmp_path, f"uniform_{seed}", seed, 500 + 10 * seed, "equal", "uniform", shares=[0.9] + [share] * 9)
+        for sampler in ("disagreement", "entropy"):
+            keep(tmp_path, f"{sampler}_{seed}", seed, 900 + 10 * seed, "equal", sampler, shares=[0.9] + [share] * 9)
+    monkeypatch.setattr(bpref, "POOLS", {"walker-walk": (str(tmp_path),)})
+    finding = bpref.f4a_equal_answers({"walker-walk": bpref.load_pool("walker-walk")})
+    assert finding.verdict == (
+        "not detected at this scale: disagreement: equal share not told apart from uniform's, return above uniform's; "
+        "entropy: equal share not told apart from uniform's, return above uniform's")
+
+
 def test_an_undecided_gap_says_how_many_seeds_would_detect_it():
     result = bpref.compare(np.array([1.0, 1.2, 1.4]), np.array([0.8, 1.0, 1.2]))  # gap 0.2, spread 0.2
     assert result.call == "none" and result.seeds_needed() == 16  # 2 x (2.8 x 0.2 / 0.2)^2 = 15.7
