@@ -336,14 +336,20 @@ def f4_uncertainty_samplers(pool, speed: dict[str, float]) -> Finding:
 def samplers_undecided(calls: dict[str, Comparison], slower: bool) -> list[str]:
     """F4's three parts in words where the finding is not decided: the uncertainty samplers against uniform (with
     the seeds a side that would detect their gaps), the coverage samplers' intervals, their speed."""
+    parts = ["disagreement and entropy above uniform"]
     not_up = [s for s in ("disagreement", "entropy") if calls[s].call != "higher"]
-    seeds = " and ".join(str(calls[s].seeds_needed()) for s in not_up)
+    if not_up:
+        seeds = " and ".join(str(calls[s].seeds_needed()) for s in not_up)
+        gaps = "their gaps" if len(not_up) > 1 else "its gap"
+        parts = [f"{' and '.join(not_up)} not detected above uniform (about {seeds} seeds a side would detect {gaps})"]
     wide = [s for s in COVERAGE if not calls[s].no_better()]
-    return [f"{' and '.join(not_up)} not detected above uniform (about {seeds} seeds a side would detect "
-            f"{'their gaps' if len(not_up) > 1 else 'its gap'})" if not_up else "disagreement and entropy above uniform",
-            f"{', '.join(wide)}: the CI reaches a gain above 15% of uniform's mean, too wide to call no better" if wide
-            else "the coverage samplers level with uniform",
-            "the coverage samplers slower" if slower else "the coverage samplers not slower"]
+    if wide:
+        parts.append(f"{', '.join(wide)}: the CI reaches a gain above 15% of uniform's mean, too wide to call no "
+                     "better")
+    else:
+        parts.append("the coverage samplers level with uniform")
+    parts.append("the coverage samplers slower" if slower else "the coverage samplers not slower")
+    return parts
 
 
 def equal_share(run: report.Run) -> float | None:
@@ -387,7 +393,7 @@ def f4a_equal_answers(pool) -> Finding:
     elif any("lower" in c for c in calls.values()):
         verdict = "does not hold"
     else:
-        words = {"higher": "above", "none": "not told apart from"}  # "lower" does not hold, above
+        words = {"higher": "above", "none": "not told apart from"}  # a "lower" call does not hold (above)
         verdict = "not detected at this scale: " + "; ".join(
             f"{s}: equal share {words[a]} uniform's, return {words[b]} uniform's" for s, (a, b) in calls.items())
     return Finding("F4a", "under the equal teacher, uncertainty samplers receive more equal answers yet learn more",
