@@ -5,7 +5,8 @@ feedback session (queries, skipped, equal) as labels.csv, one row a session; for
 every feedback session (the label files' trusted, flipped, dropped, precision and recall) as discriminator.csv,
 one row a session, which report.py --compare reads when the labels are gone; with --events, the TensorBoard files
 too (report.py --parity reads their training episodes where the reference's PrefPPO is compared); with --labels,
-the label files without the segments' observations and actions (what fit_teacher.py reads: 0.5 MB of a walker-walk run's 12).
+the label files without the segments' observations and actions (what fit_teacher.py reads: 0.5 MB of a walker-walk
+run's 12).
 Docs: docs/experiments.md
 
     python experiments/keep_runs.py runs/rime-eps0.3/rime__* --to docs/rime/data/eps0.3
